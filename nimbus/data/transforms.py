@@ -1,0 +1,378 @@
+"""Blender / nerfstudio ``transforms.json`` scenes.
+
+Reading
+-------
+* ``ROOT/transforms.json`` (nerfstudio, Instant-NGP) or Blender synthetic's
+  ``transforms_train.json`` + ``transforms_test.json`` (``transforms_val.json`` is
+  not used, as in 3DGS); a path to one ``.json`` file reads just that file.
+* ``transform_matrix`` is an OpenGL camera-to-world matrix (x right, y up,
+  z backward); it is converted to the OpenCV world-to-camera pose of
+  :mod:`nimbus.data.camera` by flipping the y and z axes and inverting.
+* Intrinsics ``fl_x, fl_y, cx, cy, w, h`` per frame or at the top level (frame
+  values win); or Blender's ``camera_angle_x`` (``fl = w / 2 / tan(angle / 2)``,
+  square pixels, centred principal point) with the size read from the image.
+* ``file_path`` relative to ROOT, with or without an extension (Blender
+  omits ``.png``).  View names are these paths with a folder shared by all of
+  them removed (``images/frame_00001.png`` -> ``frame_00001.png``).  With
+  ``downscale=d`` that shared folder ``X`` is replaced by ``X_d`` (nerfstudio's
+  ``images_2/4/8``) and the cameras are scaled to the files' true sizes.
+* Lens distortion (non-zero ``k1, k2, k3, k4, p1, p2``) and fisheye /
+  equirectangular models are refused with a message saying how to fix them:
+  Nimbus renders pinhole cameras and does not resample user images.
+* ``ply_file_path`` (nerfstudio) gives the sparse points; otherwise there are none.
+* Split: ``train_list.txt`` / ``test_list.txt`` if present; else Blender's
+  test file; else nerfstudio's ``test_filenames``; else the LLFF rule.
+* nerfstudio's per-frame ``mask_path`` / ``depth_file_path`` are ignored
+  (their conventions differ from Nimbus's); ``depths/`` and ``masks/`` folders
+  are attached as for every layout (:mod:`nimbus.data.io`).
+
+Writing
+-------
+``transforms.json`` (OpenGL camera-to-world, per-frame ``fl_x, fl_y, cx, cy,
+w, h``, ``camera_model: OPENCV``), ``images/``, ``sparse_pc.ply`` (binary PLY,
+double xyz + uchar rgb) when there are points, ``depths/``, ``masks/`` and the
+split lists.  nerfstudio reads it as it is.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from nimbus.data.camera import Camera
+from nimbus.data.images import IMAGE_EXTENSIONS
+from nimbus.data.io import (
+    attach_aux_files,
+    check_image_sizes,
+    format_names,
+    image_size,
+    scaled_to_image,
+    write_view_files,
+)
+from nimbus.data.scene import Scene, View, llff_test_names, read_split_lists
+from nimbus.errors import NimbusError
+from nimbus.utils.fs import atomic_write_bytes, atomic_write_json
+
+# OpenGL <-> OpenCV camera axes: flip y and z.
+GL_TO_CV = np.diag([1.0, -1.0, -1.0])
+DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+PINHOLE_CAMERA_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "PERSPECTIVE")
+# Colour given to PLY points that carry none (mid-grey).
+DEFAULT_POINT_COLOR = 128
+WRITTEN_PLY = "sparse_pc.ply"
+
+
+def read_json(path: Path) -> dict:
+    """Parse a JSON object from ``path``; NimbusError with the position of a syntax error."""
+    try:
+        meta = json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise NimbusError(f"{path} does not exist") from None
+    except UnicodeDecodeError:
+        raise NimbusError(f"{path} is not a UTF-8 text file; it should be a transforms.json") from None
+    except json.JSONDecodeError as e:
+        raise NimbusError(f"{path} is not valid JSON ({e.msg} at line {e.lineno}, column {e.colno}); "
+                          "fix or re-export it") from None
+    if not isinstance(meta, dict):
+        raise NimbusError(f"{path} must hold a JSON object with a \"frames\" list")
+    return meta
+
+
+def _transforms_files(path: Path) -> tuple[Path, list[tuple[Path, bool]]]:
+    """The scene root and the (json file, is_test_file) pairs to read."""
+    if path.is_file():
+        return path.parent, [(path, False)]
+    if (path / "transforms.json").is_file():
+        return path, [(path / "transforms.json", False)]
+    if (path / "transforms_train.json").is_file():
+        files = [(path / "transforms_train.json", False)]
+        if (path / "transforms_test.json").is_file():
+            files.append((path / "transforms_test.json", True))
+        return path, files
+    raise NimbusError(f"{path} has no transforms.json (or Blender transforms_train.json)")
+
+
+def _resolve_image(root: Path, file_path: str) -> Path | None:
+    """The image file a ``file_path`` names: as given, or with an image extension added."""
+    p = root / file_path
+    if p.is_file():
+        return p
+    for ext in dict.fromkeys(e.lower() for e in IMAGE_EXTENSIONS):
+        for candidate in (p.with_name(p.name + ext), p.with_name(p.name + ext.upper())):
+            if candidate.is_file():
+                return candidate
+    return None
+
+
+def _relpath(root: Path, path: Path, where: str) -> str:
+    rel = Path(os.path.relpath(path, root))
+    if rel.is_absolute() or ".." in rel.parts:
+        raise NimbusError(f"{where}: image {path} is outside the scene folder {root}; move it inside")
+    return rel.as_posix()
+
+
+def _intrinsics(meta: dict, frame: dict, full_image: Path, where: str) -> tuple[int, int, float, float, float, float]:
+    """(w, h, fx, fy, cx, cy) of a frame, frame keys over top-level ones."""
+    def get(key):
+        return frame.get(key, meta.get(key))
+
+    model = get("camera_model")
+    if model is not None and str(model).upper() not in PINHOLE_CAMERA_MODELS:
+        raise NimbusError(f"{where}: camera_model {model} is not supported; Nimbus needs pinhole (perspective) "
+                          "images without distortion (OPENCV with zero coefficients)")
+    dist = {k: float(get(k)) for k in DISTORTION_KEYS if get(k) is not None and float(get(k)) != 0.0}
+    if dist:
+        raise NimbusError(
+            f"{where}: lens distortion {dist} is not supported; Nimbus needs undistorted images. "
+            "Undistort the photos (e.g. run `colmap image_undistorter` on the COLMAP model they came from and "
+            "load that folder instead), or set the coefficients to 0 if the images are already undistorted")
+    w, h = get("w"), get("h")
+    if w is None or h is None:
+        if full_image is None or not full_image.is_file():
+            raise NimbusError(f"{where}: no image size (w, h) and no image file to read it from")
+        w, h = image_size(full_image)
+    w, h = int(w), int(h)
+    fx, fy = get("fl_x"), get("fl_y")
+    if fx is None:
+        if get("camera_angle_x") is None:
+            raise NimbusError(f"{where}: no focal length (fl_x or camera_angle_x); add it to the file")
+        fx = 0.5 * w / np.tan(0.5 * float(get("camera_angle_x")))
+    if fy is None:
+        fy = 0.5 * h / np.tan(0.5 * float(get("camera_angle_y"))) if get("camera_angle_y") is not None else fx
+    cx = get("cx") if get("cx") is not None else w / 2
+    cy = get("cy") if get("cy") is not None else h / 2
+    return w, h, float(fx), float(fy), float(cx), float(cy)
+
+
+def opengl_c2w_to_w2c(c2w: np.ndarray) -> np.ndarray:
+    """OpenGL camera-to-world (3x4 or 4x4) -> OpenCV world-to-camera 4x4."""
+    m = np.eye(4)
+    m[:3, :4] = np.asarray(c2w, dtype=np.float64)[:3, :4]
+    m[:3, :3] = m[:3, :3] @ GL_TO_CV
+    R = m[:3, :3].T
+    w2c = np.eye(4)
+    w2c[:3, :3] = R
+    w2c[:3, 3] = -R @ m[:3, 3]
+    return w2c
+
+
+def camera_to_opengl_c2w(camera: Camera) -> np.ndarray:
+    """A camera's pose as the OpenGL camera-to-world 4x4 matrix transforms.json stores."""
+    c2w = camera.camera_to_world
+    c2w[:3, :3] = c2w[:3, :3] @ GL_TO_CV
+    return c2w
+
+
+def read_transforms(path: str | os.PathLike, downscale: int = 1) -> Scene:
+    """Read a Blender / nerfstudio ``transforms.json`` scene (see the module docstring).
+
+    Parameters
+    ----------
+    path : path
+        Scene folder, or a ``.json`` file in it.
+    downscale : int
+        1, or ``d`` to read images from ``<image folder>_d`` with scaled cameras.
+
+    Returns
+    -------
+    Scene
+        ``source_format="transforms"``.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise NimbusError(f"scene folder {path} does not exist; check the path")
+    root, files = _transforms_files(path)
+    records = []  # (relative image path, full image path, camera, is_test)
+    missing, test_filenames, metas = [], [], []
+    for file, is_test in files:
+        meta = read_json(file)
+        metas.append(meta)
+        frames = meta.get("frames")
+        if not isinstance(frames, list) or not frames:
+            raise NimbusError(f"{file} has no \"frames\" list; it is not a transforms.json scene")
+        test_filenames += list(meta.get("test_filenames", []))
+        for i, frame in enumerate(frames):
+            if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
+                raise NimbusError(f"{file}: frame {i} needs \"file_path\" and \"transform_matrix\"")
+            where = f"{file}: frame {i} ({frame['file_path']})"
+            image = _resolve_image(root, frame["file_path"])
+            if image is None:
+                missing.append(str(frame["file_path"]))
+                continue
+            try:
+                w, h, fx, fy, cx, cy = _intrinsics(meta, frame, image, where)
+                c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
+                if c2w.shape not in ((4, 4), (3, 4)):
+                    raise NimbusError(f"transform_matrix must be 4x4 or 3x4, got shape {c2w.shape}")
+                cam = Camera.from_K(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), w, h, opengl_c2w_to_w2c(c2w))
+            except NimbusError as e:
+                raise NimbusError(e.args[0] if str(e).startswith(where) else f"{where}: {e}") from None
+            except (TypeError, ValueError) as e:
+                raise NimbusError(f"{where}: malformed value ({e}); fix the transforms file") from None
+            records.append((_relpath(root, image, where), image, cam, is_test))
+    if missing:
+        raise NimbusError(f"{len(missing)} image(s) listed in the transforms file(s) are missing under {root}: "
+                          f"{format_names(missing)}; restore them or remove their frames")
+
+    rel = [r[0] for r in records]
+    parts = [r.split("/") for r in rel]
+    prefix = parts[0][0] if all(len(p) > 1 and p[0] == parts[0][0] for p in parts) else ""
+    names = ["/".join(p[1:]) if prefix else r for p, r in zip(parts, rel)]
+    if downscale > 1 and not prefix:
+        raise NimbusError(f"downscale={downscale} needs the images in one folder (e.g. images/) with a "
+                          f"downscaled copy beside it (images_{downscale}/); {root} has none; use downscale=1")
+    views = []
+    for name, (_, image, cam, _) in zip(names, records):
+        if downscale > 1:
+            image = root / f"{prefix}_{downscale}" / name
+            if not image.is_file():
+                raise NimbusError(f"downscaled image {image} does not exist; make {prefix}_{downscale}/ by "
+                                  f"resizing {prefix}/ by 1/{downscale}, or use downscale=1")
+        views.append(View(name, cam, image_path=image))
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise NimbusError(f"the transforms file(s) list the same image more than once: {format_names(dup)}")
+    if downscale == 1:
+        check_image_sizes(views, "fix w/h in the transforms file or use the matching images")
+    else:
+        views = [scaled_to_image(v, downscale) for v in views]
+    views = attach_aux_files(root, views, downscale)
+
+    test = read_split_lists(root, names)
+    if test is None and len(files) > 1:
+        test = {n for n, r in zip(names, records) if r[3]}
+    if test is None and test_filenames:
+        by_path = {r[1].resolve(): n for n, r in zip(names, records)}
+        test = set()
+        for f in test_filenames:
+            image = _resolve_image(root, f)
+            if image is None or image.resolve() not in by_path:
+                raise NimbusError(f"test_filenames entry {f!r} is not a frame of the scene; fix the transforms file")
+            test.add(by_path[image.resolve()])
+    if test is None:
+        test = llff_test_names(names)
+
+    points, colors = np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+    ply_file = metas[0].get("ply_file_path")
+    if ply_file:
+        ply = root / ply_file
+        if not ply.is_file():
+            raise NimbusError(f"ply_file_path {ply} does not exist; restore it or remove the key")
+        points, colors = read_ply_points(ply)
+    return Scene(tuple(views), frozenset(test), points, colors, root=root, source_format="transforms",
+                 metadata={"transforms_files": [f.name for f, _ in files], "image_dir": prefix,
+                           "downscale": downscale})
+
+
+def write_transforms(scene: Scene, directory: str | os.PathLike) -> None:
+    """Write ``scene`` as a nerfstudio ``transforms.json`` scene into the existing folder ``directory``.
+
+    Use :func:`nimbus.data.io.write_scene` for an atomic write to a new folder.
+    """
+    if not scene.views:
+        raise NimbusError("the scene has no views; nothing to write")
+    directory = Path(directory)
+    names = write_view_files(scene, directory)
+    frames = []
+    for v in scene.views:
+        c = v.camera
+        frames.append({
+            "file_path": f"images/{names[v.name]}",
+            "transform_matrix": camera_to_opengl_c2w(c).tolist(),
+            "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy, "w": c.width, "h": c.height,
+        })
+    meta = {"camera_model": "OPENCV", "frames": frames}
+    if len(scene.points):
+        write_ply_points(directory / WRITTEN_PLY, scene.points, scene.colors)
+        meta["ply_file_path"] = WRITTEN_PLY
+    atomic_write_json(directory / "transforms.json", meta)
+
+
+# --- PLY point clouds ------------------------------------------------------------------
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+
+
+def read_ply_points(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices of a PLY file (ASCII or binary) as xyz float64 (N, 3) and rgb uint8 (N, 3).
+
+    The vertex element must come first and have x, y, z; colours are
+    ``red, green, blue`` (uchar, or float in [0, 1]); without them points are grey.
+    """
+    path = Path(path)
+    data = path.read_bytes()
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise NimbusError(f"{path} is not a PLY file")
+    header = data[:end].decode("ascii", "replace").splitlines()
+    body_start = data.index(b"\n", end) + 1
+    fmt, count, props, in_vertex, seen_element = None, 0, [], False, False
+    for line in header:
+        tok = line.split()
+        if not tok:
+            continue
+        if tok[0] == "format":
+            fmt = tok[1]
+        elif tok[0] == "element":
+            if not seen_element and tok[1] != "vertex":
+                raise NimbusError(f"{path}: the first PLY element must be 'vertex'")
+            in_vertex, seen_element = tok[1] == "vertex", True
+            if in_vertex:
+                count = int(tok[2])
+        elif tok[0] == "property" and in_vertex:
+            if tok[1] == "list" or tok[1] not in _PLY_TYPES:
+                raise NimbusError(f"{path}: unsupported vertex property {' '.join(tok[1:])}")
+            props.append((tok[2], _PLY_TYPES[tok[1]]))
+    names = [p[0] for p in props]
+    if not {"x", "y", "z"} <= set(names):
+        raise NimbusError(f"{path}: vertices have no x, y, z")
+    if fmt == "ascii":
+        rows = data[body_start:].decode("ascii", "replace").split("\n")[:count]
+        try:
+            table = np.array([r.split()[: len(props)] for r in rows], dtype=np.float64).reshape(count, len(props))
+        except ValueError:
+            raise NimbusError(f"{path}: malformed or truncated ASCII vertex list ({count} vertices declared)") from None
+        col = {n: table[:, i] for i, n in enumerate(names)}
+    elif fmt in ("binary_little_endian", "binary_big_endian"):
+        order = "<" if fmt == "binary_little_endian" else ">"
+        dtype = np.dtype([(n, order + t) for n, t in props])
+        if len(data) - body_start < dtype.itemsize * count:
+            raise NimbusError(f"{path} is truncated ({count} vertices declared)")
+        arr = np.frombuffer(data, dtype=dtype, count=count, offset=body_start)
+        col = {n: arr[n] for n in names}
+    else:
+        raise NimbusError(f"{path}: unknown PLY format {fmt!r}")
+    xyz = np.stack([col["x"], col["y"], col["z"]], axis=1).astype(np.float64)
+    if {"red", "green", "blue"} <= set(names):
+        rgb = np.stack([col["red"], col["green"], col["blue"]], axis=1)
+        if np.issubdtype(np.asarray(rgb).dtype, np.floating) and rgb.size and rgb.max() <= 1.0:
+            rgb = rgb * 255.0
+        rgb = np.clip(np.round(rgb), 0, 255).astype(np.uint8)
+    else:
+        rgb = np.full((count, 3), DEFAULT_POINT_COLOR, np.uint8)
+    return xyz, rgb
+
+
+def write_ply_points(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray) -> Path:
+    """Write points (N, 3) and uint8 colours (N, 3) as a binary little-endian PLY (double xyz), atomically."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    colors = np.asarray(colors, dtype=np.uint8).reshape(-1, 3)
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {len(points)}\n"
+        "property double x\nproperty double y\nproperty double z\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
+    )
+    table = np.empty(len(points), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"),
+                                         ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    for i, k in enumerate("xyz"):
+        table[k] = points[:, i]
+    for i, k in enumerate(("red", "green", "blue")):
+        table[k] = colors[:, i]
+    return atomic_write_bytes(path, header.encode("ascii") + table.tobytes())

@@ -1,0 +1,63 @@
+"""Shared test fixtures: small, generic, fast."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nimbus.data.camera import Camera
+from nimbus.data.scene import Scene, View
+
+
+def make_tiny_scene(n_views: int = 5, width: int = 32, height: int = 24, n_points: int = 40, seed: int = 0,
+                    depth: bool = False, mask: bool = False, test_names=None) -> Scene:
+    """An in-memory scene: look-at cameras on a ring around the origin, random images and points.
+
+    Parameters
+    ----------
+    depth, mask : bool
+        Also give every view a random z-depth map (float32 (H, W), in [1, 5]) / bool mask.
+    test_names : iterable of str, optional
+        The test split (default: the first view, ``"000.png"``).
+    """
+    rng = np.random.default_rng(seed)
+    views = []
+    for i in range(n_views):
+        a = 2 * np.pi * i / n_views
+        eye = (4 * np.cos(a), 4 * np.sin(a), 1.0 + 0.2 * i)
+        cam = Camera.look_at(eye, (0, 0, 0), (0, 0, 1), width, height, fov_x_deg=55)
+        views.append(View(
+            f"{i:03d}.png", cam,
+            image=rng.random((height, width, 3), dtype=np.float32),
+            depth=rng.uniform(1, 5, (height, width)).astype(np.float32) if depth else None,
+            mask=rng.random((height, width)) > 0.5 if mask else None,
+        ))
+    points = rng.normal(size=(n_points, 3))
+    colors = rng.integers(0, 256, (n_points, 3), dtype=np.uint8)
+    test = {"000.png"} if test_names is None else set(test_names)
+    return Scene(tuple(views), frozenset(test), points, colors)
+
+
+@pytest.fixture
+def make_scene():
+    """Factory fixture: ``make_scene(n_views=5, width=32, height=24, ...)`` -> in-memory Scene (see make_tiny_scene)."""
+    return make_tiny_scene
+
+
+def _assert_same_scene(a: Scene, b: Scene, atol: float = 1e-9) -> None:
+    """Same names, split, intrinsics, poses (to ``atol``), points and colours."""
+    assert a.names == b.names
+    assert a.test_names == b.test_names
+    for va, vb in zip(a.views, b.views):
+        ca, cb = va.camera, vb.camera
+        assert (ca.width, ca.height) == (cb.width, cb.height)
+        np.testing.assert_allclose([ca.fx, ca.fy, ca.cx, ca.cy], [cb.fx, cb.fy, cb.cx, cb.cy], atol=atol)
+        np.testing.assert_allclose(ca.world_to_camera, cb.world_to_camera, atol=atol)
+    np.testing.assert_allclose(a.points, b.points, atol=atol)
+    np.testing.assert_array_equal(a.colors, b.colors)
+
+
+@pytest.fixture
+def assert_same_scene():
+    """``assert_same_scene(a, b, atol=1e-9)``: two scenes have the same views, cameras, split and points."""
+    return _assert_same_scene

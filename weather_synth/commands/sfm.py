@@ -1,0 +1,43 @@
+"""``nimbus-synth sfm``: recover cameras from a folder of photos and write a COLMAP scene."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from nimbus.data.sfm import CAMERA_MODELS, MATCHERS, SfmConfig, list_photos, run_sfm
+
+HELP = "recover cameras and sparse points from photos (COLMAP SfM on the CPU) and write a scene folder"
+EXAMPLE = "nimbus-synth sfm my_photos/ --out scenes/garden"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    default = SfmConfig()
+    parser.add_argument("photos", metavar="PHOTOS_DIR", help="folder of photos (searched recursively; only read)")
+    parser.add_argument("--out", required=True, metavar="SCENE_DIR", help="scene folder to create")
+    parser.add_argument("--overwrite", action="store_true", help="replace a non-empty SCENE_DIR")
+    parser.add_argument("--matcher", choices=MATCHERS, default=default.matcher,
+                        help="exhaustive: every pair of photos; sequential: neighbours in name order (video)")
+    parser.add_argument("--seed", type=int, default=default.seed, help="random seed (same seed, same result)")
+    parser.add_argument("--max-image-size", type=int, default=default.max_image_size,
+                        help="longest side (pixels) photos are reduced to for feature extraction")
+    parser.add_argument("--camera-model", choices=CAMERA_MODELS, default=default.camera_model,
+                        help="camera model to estimate; distorted models are undistorted to PINHOLE afterwards")
+    parser.add_argument("--single-camera", action="store_true",
+                        help="all photos were taken by one camera with the same zoom")
+    parser.add_argument("--threads", type=int, default=default.num_threads,
+                        help="CPU threads; 1 gives the same result on every run, -1 uses every core (faster)")
+
+
+def run(args: argparse.Namespace) -> int:
+    config = SfmConfig(matcher=args.matcher, seed=args.seed, max_image_size=args.max_image_size,
+                       camera_model=args.camera_model, single_camera=args.single_camera,
+                       num_threads=args.threads)
+    result = run_sfm(args.photos, args.out, overwrite=args.overwrite, config=config,
+                     log=lambda msg: print(f"sfm: {msg}", file=sys.stderr, flush=True))
+    print(f"registered {result.registered} / {result.total} views")
+    unregistered = sorted(set(list_photos(args.photos)) - set(result.scene.names))
+    if unregistered:
+        print(f"unregistered ({len(unregistered)}): {', '.join(unregistered)}")
+    print(f"wrote {args.out}")
+    return 0
