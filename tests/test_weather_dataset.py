@@ -1,0 +1,218 @@
+"""Degraded benchmark datasets: layout, formats, reproducibility, atomicity and the command line."""
+
+import hashlib
+import json
+import zipfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from nimbus.data.builtin import render_builtin
+from nimbus.data.images import read_image
+from nimbus.data.io import load_scene, write_scene
+from nimbus.data.scene import Scene, View
+from nimbus.errors import NimbusError
+from weather_synth.archive import encode_layers, read_layers
+from weather_synth.cli import main as synth_main
+from weather_synth.config import protocol_config
+from weather_synth.dataset import degrade_scene
+from weather_synth.settings import ALL_SETTING_NAMES, parse_weather
+from weather_synth.synth import Synthesizer
+
+
+@pytest.fixture(scope="module")
+def garden():
+    """The built-in garden, tiny (64 x 48, 16 views, exact depth, sky mask, sparse points)."""
+    return render_builtin("garden", "tiny", seed=0)
+
+
+def files(root):
+    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(Path(root).rglob("*")) if p.is_file()}
+
+
+def cli(*argv):
+    """Run nimbus-synth; returns the exit code."""
+    with pytest.raises(SystemExit) as e:
+        synth_main([str(a) for a in argv])
+    return e.value.code
+
+
+def test_layout_manifest_and_layers(tmp_path, garden, assert_same_scene):
+    out = tmp_path / "bench"
+    summaries = degrade_scene(garden, out, parse_weather("H,R+S"), protocol_config(seed=2), progress=False)
+    assert [s.setting for s in summaries] == ["H", "R+S"]
+    assert summaries[0].mean_transmission is not None and summaries[1].mean_transmission is None
+    for name in ("H", "R+S"):
+        d = out / name
+        for sub in ("images", "clean", "sparse/0", "layers", "depths", "masks"):
+            assert (d / sub).is_dir(), sub
+        assert (d / "manifest.json").is_file() and (d / "train_list.txt").is_file()
+        back = load_scene(d)  # trainers read it as any COLMAP scene
+        assert_same_scene(garden, back, atol=1e-6)
+    index = json.loads((out / "index.json").read_text())
+    assert [s["setting"] for s in index["settings"]] == ["H", "R+S"]
+
+    m = json.loads((out / "H" / "manifest.json").read_text())
+    assert m["setting"] == "H" and m["protocol"] == "onerestore" and m["seed"] == 2 and m["version"]
+    assert m["config"]["haze"]["beta_range"] == [1.0, 2.0]
+    assert len(m["views"]) == len(garden)
+    for rec, v in zip(m["views"], garden.views):
+        assert rec["name"] == v.name and 1 <= rec["haze"]["beta"] <= 2 and rec["seeds"]["haze"] > 0
+        img_bytes = (out / "H" / rec["image"]).read_bytes()
+        assert hashlib.sha256(img_bytes).hexdigest() == rec["image_sha256"]
+        assert hashlib.sha256((out / "H" / rec["clean"]).read_bytes()).hexdigest() == rec["input_sha256"]
+    # The degraded image is the haze model applied to the clean image with the saved layers.
+    rec = m["views"][3]
+    L = read_layers(out / "H" / rec["layers"])
+    assert set(L) == {"transmission", "airlight"}
+    J = read_image(out / "H" / rec["clean"])
+    I = read_image(out / "H" / rec["image"])
+    t = L["transmission"][..., None]
+    # (Both J and I are 8-bit: half a step each.)
+    np.testing.assert_allclose(I, np.clip(J * t + L["airlight"] * (1 - t), 0, 1), atol=1.01 / 255)
+    np.testing.assert_allclose(J, garden.views[3].image, atol=0.51 / 255)
+    L = read_layers(out / "R+S" / rec["layers"])
+    assert set(L) == {"rain", "rain_depth", "snow", "snow_depth"}
+    assert L["snow"].max() <= 1 and L["rain"].min() >= 0
+
+
+def test_same_seed_same_bytes_and_layers_are_deterministic_zips(tmp_path, garden):
+    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    degrade_scene(garden, a, parse_weather("all"), protocol_config(seed=5), progress=False)
+    degrade_scene(garden, b, parse_weather("all"), protocol_config(seed=5), progress=False)
+    fa, fb = files(a), files(b)
+    assert sorted({k.split("/")[0] for k in fa}) == sorted(list(ALL_SETTING_NAMES) + ["index.json"])
+    assert fa.keys() == fb.keys() and all(fa[k] == fb[k] for k in fa)
+    degrade_scene(garden, c, parse_weather("R"), protocol_config(seed=6), progress=False)
+    assert files(c)["R/images/001.png"] != fa["R/images/001.png"]
+    # Archives carry fixed timestamps, so their bytes depend only on the arrays.
+    arrays = {"t": np.arange(6, dtype=np.float32).reshape(2, 3)}
+    assert encode_layers(arrays) == encode_layers(dict(arrays))
+    with zipfile.ZipFile(a / "H" / "layers" / "000.npz") as z:
+        assert {i.date_time for i in z.infolist()} == {(1980, 1, 1, 0, 0, 0)}
+
+
+def test_colmap_input_keeps_its_model_and_jpg_names_become_png(tmp_path, make_scene):
+    src = make_scene(n_views=4, depth=True)
+    # A COLMAP scene whose images are JPEG files.
+    jpg_dir = tmp_path / "jpgs"
+    jpg_dir.mkdir()
+    views = []
+    for v in src.views:
+        f = jpg_dir / v.name.replace(".png", ".jpg")
+        cv2.imwrite(str(f), (v.image[..., ::-1] * 255).astype(np.uint8))
+        views.append(View(f.name, v.camera, image_path=f, depth=v.depth))
+    scene_dir = write_scene(Scene(tuple(views), frozenset({"000.jpg"}), src.points, src.colors), tmp_path / "scene")
+    scene = load_scene(scene_dir)
+    out = tmp_path / "out"
+    degrade_scene(scene, out, parse_weather("H"), protocol_config(), progress=False)
+    back = load_scene(out / "H")
+    assert back.names == ["000.png", "001.png", "002.png", "003.png"] and back.test_names == {"000.png"}
+    assert sorted(p.name for p in (out / "H" / "clean").iterdir()) == back.names
+    np.testing.assert_allclose(read_image(out / "H" / "clean" / "001.png"), scene.views[1].load_image(), atol=1e-6)
+
+    # PNG names: the input's model files and images are copied byte for byte.
+    png_dir = write_scene(src, tmp_path / "png_scene")
+    out2 = tmp_path / "out2"
+    degrade_scene(load_scene(png_dir), out2, parse_weather("S,H"), protocol_config(), progress=False)
+    for setting in ("S", "H"):
+        for f in (png_dir / "sparse" / "0").iterdir():
+            assert (out2 / setting / "sparse" / "0" / f.name).read_bytes() == f.read_bytes()
+        assert (out2 / setting / "clean" / "002.png").read_bytes() == (png_dir / "images" / "002.png").read_bytes()
+
+
+def test_transforms_input_is_written_as_transforms(tmp_path, make_scene):
+    src = write_scene(make_scene(n_views=3, depth=True), tmp_path / "scene", format="transforms")
+    out = tmp_path / "out"
+    degrade_scene(load_scene(src), out, parse_weather("H+R"), protocol_config(), progress=False)
+    assert (out / "H+R" / "transforms.json").is_file() and not (out / "H+R" / "sparse").exists()
+    assert load_scene(out / "H+R").names == load_scene(src).names
+
+
+def test_an_interrupted_run_leaves_only_complete_settings(tmp_path, garden, monkeypatch):
+    calls = {"n": 0}
+    real = Synthesizer.degrade
+
+    def flaky(self, view, setting, image=None):
+        calls["n"] += 1
+        if setting.name == "R" and calls["n"] > len(garden) + 3:
+            raise KeyboardInterrupt
+        return real(self, view, setting, image)
+
+    monkeypatch.setattr(Synthesizer, "degrade", flaky)
+    out = tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt):
+        degrade_scene(garden, out, parse_weather("H,R,S"), protocol_config(), progress=False)
+    assert sorted(p.name for p in out.iterdir()) == ["H"]  # no R, no temporary folders
+    assert len(list((out / "H" / "images").iterdir())) == len(garden)
+
+
+def test_bad_input_is_refused_before_anything_is_written(tmp_path, garden, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    with pytest.raises(NimbusError, match="not empty.*--overwrite"):
+        degrade_scene(garden, out, parse_weather("H"), protocol_config(), progress=False)
+    with pytest.raises(NimbusError, match="zero views"):
+        degrade_scene(Scene(()), tmp_path / "x", parse_weather("H"), protocol_config(), progress=False)
+    degrade_scene(garden, out, parse_weather("H"), protocol_config(), overwrite=True, progress=False)
+    assert (out / "keep.txt").read_text() == "mine" and (out / "H" / "manifest.json").is_file()
+
+    scene_dir = write_scene(garden.with_views(garden.views[:3]), tmp_path / "scene")
+    fresh = tmp_path / "fresh"
+    cases = [
+        (["--weather", "H,drizzle"], "unknown weather token 'drizzle'"),
+        (["--beta", "-1"], "beta must be >= 0"),
+        (["--airlight", "1.5"], "airlight must be"),
+        (["--visibility", "10"], "physical haze mode"),
+        (["--rain", "torrential"], "unknown rain intensity"),
+        (["--set", "haze.nope=1"], "unknown setting"),
+    ]
+    for extra, message in cases:
+        assert cli("degrade", scene_dir, "--out", fresh, "--quiet", *extra) == 2
+        err = capsys.readouterr().err
+        assert "error: " in err and message in err and "Traceback" not in err
+        assert not fresh.exists()
+    assert cli("degrade", tmp_path / "missing", "--out", fresh) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert cli("degrade", scene_dir, "--out", out, "--quiet") == 2
+    assert "not empty" in capsys.readouterr().err
+
+
+def test_degrade_command_with_physical_protocol_and_estimated_depth(tmp_path, capsys):
+    out = tmp_path / "out"
+    code = cli("degrade", "builtin:garden:tiny", "--out", out, "--weather", "haze,h+s", "--protocol", "physical",
+               "--haze-mode", "heterogeneous", "--depth", "sparse", "--airlight", "0.7,0.75,0.8", "--quiet",
+               "--set", "snow.slices=1")
+    assert code == 0
+    table = capsys.readouterr().out
+    assert "setting" in table and "H+S" in table and "mean t" in table
+    m = json.loads((out / "H+S" / "manifest.json").read_text())
+    assert m["scene"]["haze"]["medium"]["kind"] == "height_fog"
+    assert m["scene"]["depth"]["source"] == "sparse" and m["config"]["snow"]["slices"] == 1
+    assert m["views"][0]["haze"]["airlight"] == pytest.approx([0.7, 0.75, 0.8])
+    L = read_layers(out / "H+S" / m["views"][0]["layers"])
+    assert {"transmission", "depth", "snow", "snow_depth"} <= set(L)
+    assert np.isfinite(L["transmission"]).all() and 0 < L["transmission"].mean() < 1
+    # Depth-aware snow: flake depths are positive and finite where there are flakes.
+    sd = L["snow_depth"][L["snow"] > 0.05]
+    assert sd.size and np.all((sd > 0) & np.isfinite(sd))
+
+
+def test_demo_and_preview_write_contact_sheets(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert cli("demo", "--out", out, "--size", "tiny", "--quiet", "--views", "4", "--tile-width", "96") == 0
+    assert "look at" in capsys.readouterr().out
+    sheet = cv2.imread(str(out / "contact_sheet.png"))
+    tile_h = 96 * 48 // 64
+    assert sheet.shape[0] >= 8 * tile_h and sheet.shape[1] >= 4 * 96  # clean + 7 settings, 4 views
+    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == sorted(ALL_SETTING_NAMES)
+    png = tmp_path / "sheet.png"
+    assert cli("preview", out, "--out", png, "--view", "003.png", "--view", "010.png") == 0
+    small = cv2.imread(str(png))
+    assert small.shape[1] < sheet.shape[1] and small.shape[0] > sheet.shape[0] * 0.9
+    assert cli("preview", out, "--out", png) == 2  # exists
+    assert cli("preview", tmp_path / "nothing", "--out", tmp_path / "s.png") == 2
+    assert "does not exist" in capsys.readouterr().err

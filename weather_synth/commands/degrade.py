@@ -1,0 +1,159 @@
+"""``nimbus-synth degrade``: turn a clean scene into a weather benchmark (one scene folder per setting)."""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import replace
+
+from nimbus.errors import NimbusError
+from weather_synth.config import PROTOCOLS, SynthConfig, apply_overrides, protocol_config
+from weather_synth.compose import COMPOSITION_ORDERS
+from weather_synth.haze import HAZE_MODES
+from weather_synth.rain import RAIN_PRESETS, rain_preset
+from weather_synth.settings import ALL_SETTING_NAMES, parse_weather
+from weather_synth.snow import SNOW_PRESETS, snow_preset
+
+HELP = "degrade a scene with haze, rain, snow and their mixes into a benchmark dataset (one scene per setting)"
+EXAMPLE = "nimbus-synth degrade scenes/garden --out bench/garden --weather all --seed 0"
+
+
+def add_synth_arguments(parser: argparse.ArgumentParser) -> None:
+    """The weather options shared by ``degrade`` and ``demo``."""
+    g = parser.add_argument_group("weather")
+    g.add_argument("--weather", default="all",
+                   help=f"settings, comma-separated: H|haze, R|rain, S|snow joined by '+', or 'all' "
+                        f"({','.join(ALL_SETTING_NAMES)}); case-insensitive")
+    g.add_argument("--protocol", choices=PROTOCOLS, default="onerestore",
+                   help="onerestore: the paper's data (OneRestore haze on normalised depth, per-view beta/A, "
+                        "rain -> snow -> haze); physical: one medium per scene, depth-aware particles, linear light")
+    g.add_argument("--seed", type=int, default=0, help="scene seed: same seed, same bytes")
+    g.add_argument("--depth", default="auto", metavar="SOURCE",
+                   help="depth for haze and depth-aware particles: scene (the views' depth maps), sparse "
+                        "(densified SfM points), onnx:MODEL.onnx (monocular model aligned to the points), "
+                        "auto (scene if every view has a depth map, else sparse)")
+    h = parser.add_argument_group("haze")
+    h.add_argument("--haze-mode", choices=HAZE_MODES, default=None,
+                   help="override the protocol's haze model (heterogeneous: world-space height fog with 3D noise)")
+    h.add_argument("--beta", default=None, metavar="B|LO:HI",
+                   help="extinction: a fixed value or a range to sample (onerestore: per unit of normalised "
+                        "depth, default 1:2; physical: 1 / scene unit)")
+    h.add_argument("--visibility", type=float, default=None, metavar="V",
+                   help="physical haze: visibility distance in scene units (beta = 3.912 / V); "
+                        "default 5 x the median surface distance")
+    h.add_argument("--airlight", default=None, metavar="A|R,G,B|LO:HI",
+                   help="airlight in [0, 1]: grey value, RGB tint, or grey range to sample (default 0.6:0.9)")
+    p = parser.add_argument_group("particles")
+    p.add_argument("--rain", default="medium", metavar="PRESET|AMOUNT",
+                   help=f"rain intensity: {'|'.join(RAIN_PRESETS)} or a number scaling the medium "
+                        "streak brightness (0 = none)")
+    p.add_argument("--snow", default="medium", metavar="PRESET|AMOUNT",
+                   help=f"snow intensity: {'|'.join(SNOW_PRESETS)} or a number scaling the medium flake count "
+                        "(0 = none)")
+    p.add_argument("--depth-aware", action=argparse.BooleanOptionalAction, default=None,
+                   help="particles get depths: size ~ 1/z, hidden behind nearer surfaces (physical default)")
+    c = parser.add_argument_group("compositing")
+    c.add_argument("--order", choices=COMPOSITION_ORDERS, default=None,
+                   help="onerestore: rain -> snow -> haze (particles behind the haze); physical: each particle "
+                        "attenuated over its own distance")
+    c.add_argument("--linear", action=argparse.BooleanOptionalAction, default=None,
+                   help="composite in linear light (sRGB decoded) instead of display values")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="any other config value, e.g. --set haze.fog_noise_amplitude=0.3 --set rain.slices=3 "
+                             "(repeatable; keys as in the manifest's config)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def _float(text: str, what: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise NimbusError(f"{what}: {text!r} is not a number") from None
+
+
+def _intensity(text: str, preset, what: str):
+    try:
+        amount = float(text)
+    except ValueError:
+        return preset(text)
+    if not amount >= 0:
+        raise NimbusError(f"--{what} amount must be >= 0, got {text}")
+    return preset("medium", amount=amount)
+
+
+def config_from_args(args: argparse.Namespace, scene=None) -> SynthConfig:
+    """The SynthConfig the weather options describe (``scene`` resolves ``--depth auto``)."""
+    cfg = protocol_config(args.protocol, seed=args.seed)
+    haze = cfg.haze
+    if args.haze_mode is not None:
+        haze = replace(haze, mode=args.haze_mode)
+    if args.beta is not None:
+        if ":" in args.beta:
+            lo, hi = (_float(x, "--beta") for x in args.beta.split(":", 1))
+            haze = replace(haze, beta=None, beta_range=(lo, hi))
+        else:
+            haze = replace(haze, beta=_float(args.beta, "--beta"))
+    if args.visibility is not None:
+        haze = replace(haze, visibility=args.visibility)
+    if args.airlight is not None:
+        if ":" in args.airlight:
+            lo, hi = (_float(x, "--airlight") for x in args.airlight.split(":", 1))
+            haze = replace(haze, airlight=None, airlight_range=(lo, hi))
+        else:
+            vals = [_float(x, "--airlight") for x in args.airlight.split(",")]
+            if len(vals) not in (1, 3):
+                raise NimbusError(f"--airlight takes one grey value or R,G,B, got {args.airlight!r}")
+            haze = replace(haze, airlight=tuple(vals * 3 if len(vals) == 1 else vals))
+    rain = _intensity(args.rain, rain_preset, "rain")
+    snow = _intensity(args.snow, snow_preset, "snow")
+    compose = cfg.compose
+    if args.order is not None:
+        compose = replace(compose, order=args.order)
+    if args.linear is not None:
+        compose = replace(compose, linear=args.linear)
+    depth_src = args.depth
+    if depth_src == "auto":
+        depth_src = "scene" if scene is None or all(v.has_depth for v in scene.views) or not len(scene.points) \
+            else "sparse"
+    cfg = replace(cfg, haze=haze, rain=rain, snow=snow, compose=compose,
+                  depth=replace(cfg.depth, source=depth_src),
+                  depth_aware=cfg.depth_aware if args.depth_aware is None else args.depth_aware)
+    return apply_overrides(cfg, args.set)
+
+
+def load_input_scene(spec: str, downscale: int = 1):
+    """A scene folder, or ``builtin:NAME[:SIZE]`` for a built-in scene rendered in memory."""
+    if spec.startswith("builtin:"):
+        from nimbus.data.builtin import render_builtin
+
+        parts = spec.split(":")
+        name = parts[1] if len(parts) > 1 else ""
+        size = parts[2] if len(parts) > 2 else "tiny"
+        return render_builtin(name, size)
+    from nimbus.data.io import load_scene
+
+    return load_scene(spec, downscale=downscale)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("scene", metavar="SCENE",
+                        help="scene folder (COLMAP images/ + sparse/0, or transforms.json), "
+                             "or builtin:NAME[:SIZE] (e.g. builtin:garden:small)")
+    parser.add_argument("--out", required=True, metavar="OUT", help="dataset folder to create (one subfolder per setting)")
+    parser.add_argument("--overwrite", action="store_true", help="write into a non-empty OUT, replacing its settings")
+    parser.add_argument("--downscale", type=int, default=1, help="use images_<d>/ of a Mip-NeRF360-style scene")
+    add_synth_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    from nimbus.utils.fs import check_output_dir
+    from weather_synth.dataset import degrade_scene, format_summary
+
+    settings = parse_weather(args.weather)
+    check_output_dir(args.out, args.overwrite)  # before loading: fail fast
+    scene = load_input_scene(args.scene, args.downscale)
+    config = config_from_args(args, scene)
+    summaries = degrade_scene(scene, args.out, settings, config, overwrite=args.overwrite,
+                              progress=not args.quiet, source=args.scene)
+    print(format_summary(summaries))
+    print(f"wrote {args.out} ({len(summaries)} settings x {len(scene.views)} views)")
+    return 0

@@ -1,0 +1,207 @@
+"""Rain: procedural streak layers, per view, additive (OneRestore / RainStreakGen style).
+
+Each view gets several streak *layers* like RainStreakGen's dense / middle /
+sparse: sparse random seeds (a Poisson number at random pixels, values
+``U[0.6, 1]``), drawn out by a motion-blur kernel (a line of the layer's
+length along the fall direction, thickened by a Gaussian of the layer's width),
+scaled so an isolated streak peaks at its seed value, clipped to 1 ("levels")
+and multiplied by the layer's weight ``U[weight]``.  Far layers are dense,
+short and thin; near layers sparse, long, wide and faint.  The rain layer is
+added to the image (OneRestore: ``I = J + R``), so drops are bright whatever
+the background, as Garg & Nayar observed.
+
+The streak angle of a view is the scene's fall direction (straight down, tilted
+by a per-scene wind, :func:`~weather_synth.particles.fall_direction`) projected at the image centre, plus a small per-layer
+jitter: views looking the same way see rain falling the same way.
+
+Depth-aware (see :mod:`weather_synth.particles`): each layer is split into
+slices at stratified depths within its depth range (in depth-scale units);
+length and width scale with ``z_ref / z`` (``z_ref`` the geometric mean of the
+range) and a slice is hidden behind nearer surfaces.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from nimbus.data.camera import Camera
+from nimbus.errors import NimbusError
+from weather_synth.particles import (
+    ParticleSlice,
+    hide_behind,
+    image_fall_angle,
+    motion_kernel,
+    pixel_scale,
+    poisson_seeds,
+    render_streaks,
+    slice_depths,
+)
+
+RAIN_PRESETS = ("light", "medium", "heavy")
+# Cross-section sigma (pixels) of an anti-aliased one-pixel line: thinner streaks are dimmed instead.
+LINE_SIGMA = 0.4
+
+
+@dataclass(frozen=True)
+class StreakLayer:
+    """One family of streaks.
+
+    Attributes
+    ----------
+    name : str
+    density : float
+        Streaks per reference-width pixel (:data:`~weather_synth.particles.REFERENCE_WIDTH`).
+    length : (float, float)
+        Streak length range, reference-width pixels (drawn per view).
+    width : float
+        Gaussian sigma of the streak's cross-section, reference-width pixels.
+    weight : (float, float)
+        Peak brightness range of the layer (drawn per view).
+    depth : (float, float)
+        Depth-aware: z-depth range in depth-scale units.
+    """
+
+    name: str
+    density: float
+    length: tuple[float, float]
+    width: float
+    weight: tuple[float, float]
+    depth: tuple[float, float]
+
+
+# RainStreakGen: dense (weight 0.25-0.45, thin), middle (0.20-0.35, blurrier), sparse (0.10-0.20, large).
+DEFAULT_LAYERS = (
+    StreakLayer("dense", 0.0030, (14.0, 26.0), 0.5, (0.25, 0.45), (1.0, 2.5)),
+    StreakLayer("middle", 0.0010, (26.0, 48.0), 1.0, (0.20, 0.35), (0.35, 1.0)),
+    StreakLayer("sparse", 0.00025, (48.0, 90.0), 1.8, (0.10, 0.20), (0.1, 0.35)),
+)
+
+
+@dataclass(frozen=True)
+class RainConfig:
+    """Rain parameters.  Presets: :func:`rain_preset` (``light`` / ``medium`` / ``heavy``).
+
+    Attributes
+    ----------
+    amount : float
+        Multiplies every layer's weight (0 = no rain, the image is unchanged;
+        huge values saturate to white).
+    density_scale : float
+        Multiplies every layer's density.
+    length_scale : float
+        Multiplies every layer's streak length.
+    layers : tuple of StreakLayer
+    angle_jitter : float
+        Per-layer, per-view jitter of the streak angle, degrees (+-).
+    slices : int
+        Depth-aware: slices per layer.
+    """
+
+    amount: float = 1.0
+    density_scale: float = 1.0
+    length_scale: float = 1.0
+    layers: tuple[StreakLayer, ...] = DEFAULT_LAYERS
+    angle_jitter: float = 3.0
+    slices: int = 2
+
+    def __post_init__(self) -> None:
+        for name in ("amount", "density_scale", "length_scale"):
+            v = getattr(self, name)
+            if not (v >= 0 and np.isfinite(v)):
+                raise NimbusError(f"rain {name} must be a finite number >= 0, got {v}")
+        if self.slices < 1:
+            raise NimbusError(f"rain slices must be >= 1, got {self.slices}")
+        for layer in self.layers:
+            if layer.density < 0 or layer.width < 0 or min(layer.length) <= 0 or min(layer.weight) < 0 \
+                    or min(layer.depth) <= 0 or layer.depth[0] > layer.depth[1]:
+                raise NimbusError(f"rain layer {layer.name}: densities, widths and weights must be >= 0, "
+                                  f"lengths and depths positive with lo <= hi")
+
+    @property
+    def active(self) -> bool:
+        return self.amount > 0 and self.density_scale > 0 and any(l.density > 0 for l in self.layers)
+
+
+_PRESET_SCALES = {  # (amount, density_scale, length_scale)
+    "light": (0.8, 0.4, 0.8),
+    "medium": (1.0, 1.0, 1.0),
+    "heavy": (1.2, 2.5, 1.2),
+}
+
+
+def rain_preset(name: str, **overrides) -> RainConfig:
+    """The named intensity preset (``light``, ``medium``, ``heavy``) with optional field overrides."""
+    key = str(name).lower()
+    if key not in _PRESET_SCALES:
+        raise NimbusError(f"unknown rain intensity {name!r}; use one of {RAIN_PRESETS} or a number (amount)")
+    amount, dens, length = _PRESET_SCALES[key]
+    return replace(RainConfig(amount=amount, density_scale=dens, length_scale=length), **overrides)
+
+
+@dataclass
+class RainResult:
+    slices: list[ParticleSlice] = field(default_factory=list)
+    info: dict = field(default_factory=dict)
+
+
+def render_rain(camera: Camera, rng: np.random.Generator, config: RainConfig, fall_dir: np.ndarray,
+                surface_depth: np.ndarray | None = None, depth_scale: float = 1.0,
+                depth_aware: bool = False) -> RainResult:
+    """Render one view's rain slices.
+
+    Parameters
+    ----------
+    camera : Camera
+    rng : Generator
+        The view's rain stream (``rng_for(seed, "rain", view name)``).
+    config : RainConfig
+    fall_dir : (3,) array
+        World fall direction (:func:`~weather_synth.particles.fall_direction`).
+    surface_depth : (H, W) float32 or None
+        Scene z-depth for depth-aware occlusion.
+    depth_scale : float
+        Scene depth scale (slice depths are in these units).
+    depth_aware : bool
+
+    Returns
+    -------
+    RainResult
+        ``slices`` (additive layers, float32 (H, W)) and JSON-able ``info``.
+    """
+    H, W = camera.height, camera.width
+    px = pixel_scale(W)
+    base_angle = image_fall_angle(camera, fall_dir)
+    info = {"angle_deg": base_angle, "layers": []}
+    result = RainResult(info=info)
+    if not config.active:
+        return result
+    n_slices = config.slices if depth_aware else 1
+    for layer in config.layers:
+        weight = float(rng.uniform(*layer.weight)) * config.amount
+        length = float(rng.uniform(*layer.length)) * config.length_scale
+        angle = base_angle + float(rng.uniform(-config.angle_jitter, config.angle_jitter))
+        zs = slice_depths(rng, layer.depth, n_slices, depth_scale) if depth_aware else np.zeros(1)
+        z_ref = np.sqrt(layer.depth[0] * layer.depth[1]) * depth_scale
+        rec = {"name": layer.name, "weight": weight, "length_px": length * px, "angle_deg": angle, "slices": []}
+        for z in zs:
+            k = z_ref / z if depth_aware else 1.0
+            L_true = length * px * k
+            sigma = layer.width * px * k
+            L = max(1.0, L_true)
+            # A streak thinner or shorter than a pixel is drawn one pixel wide / long; dim it so
+            # that it carries the light of the true streak (rain turns into a faint veil at low resolution).
+            dim = min(1.0, sigma / LINE_SIGMA) * min(1.0, L_true)
+            kernel = motion_kernel(L, angle, sigma)
+            pad = kernel.shape[0] // 2
+            per_pixel = layer.density * config.density_scale / (px * px) / n_slices
+            seeds = poisson_seeds(rng, (H + 2 * pad, W + 2 * pad), per_pixel, (0.6, 1.0))
+            streaks = render_streaks(seeds, kernel)[pad:pad + H, pad:pad + W]
+            streaks = np.minimum(streaks, np.float32(1)) * np.float32(weight * dim)
+            streaks = hide_behind(streaks, float(z), surface_depth if depth_aware else None)
+            result.slices.append(ParticleSlice("rain", streaks.astype(np.float32), float(z)))
+            rec["slices"].append({"z": float(z), "length_px": float(L_true), "sigma_px": float(sigma),
+                                  "brightness": float(weight * dim)})
+        info["layers"].append(rec)
+    return result
