@@ -1,0 +1,1 @@
+"""Speed and quality measurements of Nimbus (scripts; run with ``python -m benchmark.<name>``)."""
