@@ -1,0 +1,25 @@
+"""Differentiable Gaussian-splatting rasterizer (CPU-first; torch, C++ or gsplat compositing).
+
+Public entry points: :class:`Gaussians` and its initialisers, :func:`rasterize`.
+"""
+
+from nimbus.render.gaussians import (
+    GaussianInitConfig,
+    Gaussians,
+    init_from_points,
+    init_from_scene,
+    init_random,
+)
+from nimbus.render.rasterize import BACKENDS, RasterConfig, means2d_grad, rasterize
+
+__all__ = [
+    "BACKENDS",
+    "GaussianInitConfig",
+    "Gaussians",
+    "RasterConfig",
+    "init_from_points",
+    "init_from_scene",
+    "init_random",
+    "means2d_grad",
+    "rasterize",
+]
