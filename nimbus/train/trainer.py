@@ -1,0 +1,348 @@
+"""The 3DGS training loop: run directory, checkpoints, logging, evaluation.
+
+:class:`GaussianTrainer` implements vanilla 3DGS.  Methods built on it (NimbusGS)
+subclass it and override the hooks :meth:`GaussianTrainer.extra_setup`,
+:meth:`GaussianTrainer.compute_loss`, :meth:`GaussianTrainer.before_step` and
+:meth:`GaussianTrainer.extra_state`, so checkpoints, resume, densification, guards
+and outputs are shared.
+
+A run directory holds::
+
+    config.json           the run's settings (scene path, method, seed, every config field)
+    checkpoint.pt         latest checkpoint (parameters, optimiser, densification stats, RNG)
+    train_log.jsonl       one JSON line every ``log_interval`` iterations and for every event
+    point_cloud.ply       the final Gaussians in the standard 3DGS PLY layout
+    renders/test/NAME.png renders of the held-out views
+    results.json          test-view PSNR / SSIM, train time, peak memory, Gaussian count
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import resource
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+import nimbus
+from nimbus.data import Scene, View
+from nimbus.data.images import write_image
+from nimbus.errors import NimbusError
+from nimbus.losses import photometric_loss, psnr, ssim
+from nimbus.render.gaussians import GaussianInitConfig, Gaussians, init_from_scene
+from nimbus.render.projection import ProjectionConfig
+from nimbus.render.rasterize import RasterConfig, means2d_grad, rasterize
+from nimbus.train.config import TrainConfig
+from nimbus.train.densify import DensityController, GaussianParams
+from nimbus.train.ply import write_gaussian_ply
+from nimbus.utils.fs import atomic_write_bytes, atomic_write_json
+
+CHECKPOINT = "checkpoint.pt"
+LAST_GOOD = "checkpoint_last_good.pt"
+
+
+def default_device() -> torch.device:
+    return torch.device("cuda") if torch.cuda.is_available() else torch.device("cpu")
+
+
+def peak_memory_mb(device: torch.device) -> float:
+    """Peak memory of this process: CUDA allocator peak on a GPU, else the resident-set high-water mark."""
+    if device.type == "cuda":
+        return torch.cuda.max_memory_allocated(device) / 2**20
+    rss_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss_kb / 1024.0
+
+
+def quantize_8bit(img: torch.Tensor) -> torch.Tensor:
+    return torch.round(img.clamp(0, 1) * 255.0) / 255.0
+
+
+class GaussianTrainer:
+    """Vanilla 3DGS on a :class:`~nimbus.data.Scene`.
+
+    Parameters
+    ----------
+    scene : Scene
+        Training views are ``scene.train_views``; evaluation uses ``scene.test_views``.
+    config : TrainConfig
+    out_dir : Path
+        The run directory (created; must be empty unless ``resume``).
+    seed : int
+    method : str
+        Name recorded in the outputs.
+    scene_path : str or None
+        Where the scene was loaded from (recorded so ``--resume`` can reload it).
+    progress : bool
+        Show a progress bar on stderr.
+    """
+
+    method_name = "3dgs"
+
+    def __init__(self, scene: Scene, config: TrainConfig, out_dir: str | os.PathLike, seed: int = 0,
+                 scene_path: str | None = None, progress: bool = True, device: torch.device | None = None,
+                 scene_load_args: dict | None = None) -> None:
+        if not scene.train_views:
+            raise NimbusError("the scene has no training views; check its train/test split")
+        self.scene = scene
+        self.cfg = config
+        self.out = Path(out_dir)
+        self.seed = int(seed)
+        self.scene_path = scene_path
+        self.scene_load_args = scene_load_args or {}
+        self.progress = progress
+        self.device = device or default_device()
+        self.iteration = 0
+        self.train_time = 0.0
+        self.events: list[dict] = []
+        torch.manual_seed(self.seed)
+        np.random.seed(self.seed % 2**32)
+        self.gen = torch.Generator().manual_seed(self.seed)
+        self.train_views: list[View] = scene.train_views
+        self.train_images = [torch.from_numpy(v.load_image()).to(self.device) for v in self.train_views]
+        init = init_from_scene(scene, GaussianInitConfig(sh_degree=config.sh_degree, init_opacity=config.init_opacity,
+                                                         random_points=config.init_random_points, seed=self.seed))
+        self.params = GaussianParams(self._init_tensors(init), self._learning_rates(), config.adam_eps)
+        self.density = DensityController(config, scene.extent, self.gen)
+        self.raster_config = RasterConfig(tile_size=config.tile_size,
+                                          projection=ProjectionConfig(near=config.near_plane))
+        self._order: list[int] = []
+        self.extra_setup()
+
+    # --- hooks for derived methods -------------------------------------------------
+    def extra_setup(self) -> None:
+        """Create method-specific modules and optimisers (called at the end of ``__init__``)."""
+
+    def extra_state(self) -> dict:
+        """Method-specific state to checkpoint."""
+        return {}
+
+    def load_extra_state(self, state: dict) -> None:
+        """Restore what :meth:`extra_state` saved."""
+
+    def compute_loss(self, view_index: int, render: dict[str, torch.Tensor], gt: torch.Tensor) -> torch.Tensor:
+        """The training loss for one view; ``render`` has ``rgb``, ``depth``, ``alpha`` and ``meta``."""
+        return photometric_loss(render["rgb"], gt, self.cfg.lambda_dssim)
+
+    def before_step(self, view_index: int, render: dict) -> None:
+        """Called after ``backward`` and the densification statistics, before the optimiser step."""
+
+    def optimizer_step(self) -> None:
+        """Step and clear every optimiser (derived methods add theirs)."""
+        self.params.optimizer.step()
+        self.params.optimizer.zero_grad(set_to_none=True)
+
+    def eval_image(self, view: View, render: dict) -> torch.Tensor:
+        """The image scored against the clean ground truth (3DGS: the render itself)."""
+        return render["rgb"]
+
+    # --- set-up helpers ----------------------------------------------------------------
+    def _init_tensors(self, g: Gaussians) -> dict[str, torch.Tensor]:
+        return {k: v.to(self.device) for k, v in g.tensors().items()}
+
+    def _learning_rates(self) -> dict[str, float]:
+        c = self.cfg
+        return {"means": c.lr_means_init * self.scene.extent, "log_scales": c.lr_scales, "quats": c.lr_quats,
+                "opacity_logits": c.lr_opacity, "sh_dc": c.lr_sh_dc, "sh_rest": c.lr_sh_rest}
+
+    def gaussians(self) -> Gaussians:
+        t = self.params.tensors
+        return Gaussians(means=t["means"], log_scales=t["log_scales"], quats=t["quats"],
+                         opacity_logits=t["opacity_logits"], sh_dc=t["sh_dc"], sh_rest=t["sh_rest"])
+
+    def active_sh_degree(self, it: int) -> int:
+        return min(self.cfg.sh_degree, it // self.cfg.sh_degree_interval)
+
+    def means_lr(self, it: int) -> float:
+        """Log-linear decay from ``lr_means_init`` to ``lr_means_final`` over the run, times the extent."""
+        c = self.cfg
+        t = min(max(it / max(c.iterations, 1), 0.0), 1.0)
+        lr = math.exp(math.log(c.lr_means_init) * (1 - t) + math.log(c.lr_means_final) * t)
+        return lr * self.scene.extent
+
+    def render(self, view: View, sh_degree: int | None = None, background: torch.Tensor | None = None) -> dict:
+        bg = background if background is not None else torch.tensor(self.cfg.background, device=self.device)
+        deg = self.cfg.sh_degree if sh_degree is None else sh_degree
+        rgb, depth, alpha, meta = rasterize(self.gaussians(), view.camera, sh_degree=deg, background=bg,
+                                            backend=self.cfg.backend, config=self.raster_config)
+        return {"rgb": rgb, "depth": depth, "alpha": alpha, "meta": meta}
+
+    # --- training ----------------------------------------------------------------------
+    def _next_view(self) -> int:
+        if not self._order:
+            self._order = torch.randperm(len(self.train_views), generator=self.gen).tolist()
+        return self._order.pop()
+
+    def log(self, record: dict) -> None:
+        record = {"iteration": self.iteration, **record}
+        with open(self.out / "train_log.jsonl", "a") as f:
+            f.write(json.dumps(record) + "\n")
+
+    def event(self, kind: str, **info: Any) -> None:
+        self.log({"event": kind, **info})
+
+    def train(self) -> dict:
+        """Run (or continue) training to ``config.iterations``, then evaluate and write the outputs."""
+        self.out.mkdir(parents=True, exist_ok=True)
+        if self.iteration == 0:
+            self.write_config()
+        c = self.cfg
+        bar = tqdm(total=c.iterations, initial=self.iteration, disable=not self.progress, file=sys.stderr,
+                   desc=f"{self.method_name}", dynamic_ncols=True, leave=True)
+        loss_ema = psnr_ema = None
+        start = time.perf_counter()
+        time_offset = self.train_time
+        try:
+            while self.iteration < c.iterations:
+                it = self.iteration + 1
+                if len(self.params) == 0:
+                    self.save_checkpoint(LAST_GOOD)
+                    raise NimbusError(f"every Gaussian was pruned by iteration {it}; lower prune_opacity or "
+                                      "densify_grad_threshold (--set key=value), or check that the input views "
+                                      "are not blank")
+                self.params.set_lr("means", self.means_lr(it))
+                vi = self._next_view()
+                view, gt = self.train_views[vi], self.train_images[vi]
+                bg = torch.rand(3, generator=self.gen).to(self.device) if c.random_background else None
+                render = self.render(view, self.active_sh_degree(it), bg)
+                loss = self.compute_loss(vi, render, gt)
+                if not torch.isfinite(loss):
+                    self.save_checkpoint(LAST_GOOD)
+                    raise NimbusError(f"the loss became {float(loss.detach())} at iteration {it}; the last good state is in "
+                                      f"{self.out / LAST_GOOD}. Lower the learning rates (--set lr_...=...) or "
+                                      "check the input images")
+                if loss.requires_grad and bool(render["meta"]["visible"].any()):
+                    loss.backward()
+                    meta = render["meta"]
+                    grad2d = means2d_grad(meta)
+                    if grad2d is not None:
+                        self.density.accumulate(grad2d, meta["radii"], view.camera.width, view.camera.height)
+                    self.before_step(vi, render)
+                    if not self._grads_finite():
+                        self.save_checkpoint(LAST_GOOD)
+                        raise NimbusError(f"non-finite gradients at iteration {it}; the last good state is in "
+                                          f"{self.out / LAST_GOOD}. Lower the learning rates or check the inputs")
+                    self.optimizer_step()
+                else:  # nothing in this view depends on the Gaussians: nothing to learn from it
+                    self.event("no_visible_gaussians", view=view.name)
+                self.iteration = it
+                self.after_step(it)
+                with torch.no_grad():
+                    lv = float(loss)
+                    pv = psnr(render["rgb"], gt)
+                loss_ema = lv if loss_ema is None else 0.9 * loss_ema + 0.1 * lv
+                psnr_ema = pv if psnr_ema is None else 0.9 * psnr_ema + 0.1 * pv
+                if it % c.log_interval == 0 or it == c.iterations:
+                    self.train_time = time_offset + time.perf_counter() - start
+                    self.log({"loss": round(loss_ema, 6), "psnr": round(psnr_ema, 3), "gaussians": len(self.params),
+                              "elapsed_s": round(self.train_time, 3)})
+                    bar.set_postfix(loss=f"{loss_ema:.4f}", psnr=f"{psnr_ema:.2f}", gs=len(self.params))
+                bar.update(1)
+                if it % c.checkpoint_interval == 0 and it < c.iterations:
+                    self.train_time = time_offset + time.perf_counter() - start
+                    self.save_checkpoint()
+        finally:
+            bar.close()
+        self.train_time = time_offset + time.perf_counter() - start
+        self.save_checkpoint()
+        return self.finish()
+
+    def after_step(self, it: int) -> None:
+        """Densification, pruning and opacity resets on the Inria schedule."""
+        if self.density.is_densify_step(it):
+            counts = self.density.densify_and_prune(self.params, it)
+            self.event("densify", gaussians=len(self.params), **counts)
+        if self.density.is_reset_step(it):
+            self.density.reset_opacity(self.params)
+            self.event("opacity_reset")
+
+    def _grads_finite(self) -> bool:
+        for group in self.all_param_groups():
+            for p in group["params"]:
+                if p.grad is not None and not torch.isfinite(p.grad).all():
+                    return False
+        return True
+
+    def all_param_groups(self) -> list[dict]:
+        return list(self.params.optimizer.param_groups)
+
+    # --- checkpoints -------------------------------------------------------------------
+    def state(self) -> dict:
+        return {"iteration": self.iteration, "train_time": self.train_time, "params": self.params.state_dict(),
+                "density": self.density.state_dict(), "generator": self.gen.get_state(),
+                "torch_rng": torch.get_rng_state(), "order": list(self._order), "extra": self.extra_state()}
+
+    def save_checkpoint(self, name: str = CHECKPOINT) -> Path:
+        import io
+
+        buf = io.BytesIO()
+        torch.save(self.state(), buf)
+        return atomic_write_bytes(self.out / name, buf.getvalue())
+
+    def load_checkpoint(self, path: Path) -> None:
+        try:
+            state = torch.load(path, map_location=self.device, weights_only=False)
+        except Exception as e:  # a truncated or foreign file
+            raise NimbusError(f"cannot read checkpoint {path} ({e.__class__.__name__}); start a new run") from None
+        self.iteration = int(state["iteration"])
+        self.train_time = float(state["train_time"])
+        self.params.load_state_dict(state["params"])
+        self.density.load_state_dict(state["density"])
+        self.gen.set_state(state["generator"])
+        torch.set_rng_state(state["torch_rng"])
+        self._order = list(state["order"])
+        self.load_extra_state(state["extra"])
+
+    def write_config(self) -> None:
+        atomic_write_json(self.out / "config.json", {
+            "method": self.method_name, "scene": self.scene_path, "scene_load_args": self.scene_load_args,
+            "seed": self.seed, "config": dataclasses.asdict(self.cfg), "config_type": type(self.cfg).__name__,
+            "nimbus_version": nimbus.__version__, "device": str(self.device),
+        })
+
+    # --- outputs -----------------------------------------------------------------------
+    @torch.no_grad()
+    def evaluate(self) -> dict:
+        """Render the test views (or the training views if there are none), save them, and score them."""
+        views = self.scene.test_views or self.scene.train_views
+        split = "test" if self.scene.test_views else "train"
+        per_view = {}
+        render_times = []
+        for view in views:
+            t0 = time.perf_counter()
+            render = self.render(view)
+            render_times.append(time.perf_counter() - t0)
+            # Scored after the 8-bit round trip that the saved PNGs (and the benchmark) go through.
+            pred = quantize_8bit(self.eval_image(view, render))
+            write_image(self.out / "renders" / split / f"{view.stem}.png", pred.cpu().numpy())
+            gt = quantize_8bit(torch.from_numpy(view.load_image()).to(pred))
+            per_view[view.name] = {"psnr": psnr(pred, gt), "ssim": float(ssim(pred, gt))}
+        mean = {k: float(np.mean([v[k] for v in per_view.values()])) for k in ("psnr", "ssim")}
+        fps = len(render_times) / max(sum(render_times), 1e-9)
+        return {"split": split, "per_view": per_view, "render_fps": fps, **mean}
+
+    def finish(self) -> dict:
+        g = self.gaussians().detach()
+        write_gaussian_ply(self.out / "point_cloud.ply", g.means.cpu().numpy(), g.sh.cpu().numpy(),
+                           g.opacity_logits.cpu().numpy(), g.log_scales.cpu().numpy(), g.quats.cpu().numpy())
+        ev = self.evaluate()
+        results = {
+            "method": self.method_name, "scene": self.scene_path, "seed": self.seed,
+            "iterations": self.iteration, "train_time_s": round(self.train_time, 3),
+            "peak_memory_mb": round(peak_memory_mb(self.device), 1), "num_gaussians": len(self.params),
+            "eval_split": ev["split"], "psnr": ev["psnr"], "ssim": ev["ssim"], "render_fps": ev["render_fps"],
+            "per_view": ev["per_view"], "device": str(self.device), "nimbus_version": nimbus.__version__,
+            **self.extra_results(),
+        }
+        atomic_write_json(self.out / "results.json", results)
+        return results
+
+    def extra_results(self) -> dict:
+        return {}

@@ -1,0 +1,168 @@
+"""The 3DGS trainer: determinism, outputs, resume, guards, PLY layout and densification surgery."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from nimbus.data.builtin import render_builtin
+from nimbus.errors import NimbusError
+from nimbus.train.config import TrainConfig, preset
+from nimbus.train.densify import DensityController, GaussianParams
+from nimbus.train.ply import ply_property_names, read_gaussian_ply
+from nimbus.train.trainer import CHECKPOINT, LAST_GOOD, GaussianTrainer
+
+
+@pytest.fixture(scope="module")
+def scene():
+    s = render_builtin("garden", size="tiny", seed=0)
+    # Keep the test cheap: 6 training views, 2 test views.
+    keep = s.train_views[:6] + s.test_views[:2]
+    return s.with_views(keep)
+
+
+def _cfg(**kw):
+    base = dict(iterations=12, sh_degree=1, sh_degree_interval=5, densify_from=3, densify_until=9,
+                densify_interval=3, opacity_reset_interval=6, checkpoint_interval=6, log_interval=3)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def test_presets_scale_the_schedule():
+    tiny, fast, paper = preset("tiny"), preset("fast"), preset("paper")
+    assert tiny.iterations < fast.iterations < paper.iterations == 30_000
+    for c in (tiny, fast, paper):
+        assert 0 < c.densify_from < c.densify_until <= c.iterations
+        assert (c.densify_until - c.densify_from) // c.densify_interval >= 3  # short runs still densify
+    longer = fast.with_overrides({"iterations": "6000"})
+    assert longer.densify_until == 2 * fast.densify_until
+    assert fast.with_overrides({"lr_opacity": "0.1"}).lr_opacity == 0.1
+    with pytest.raises(NimbusError, match="unknown setting"):
+        fast.with_overrides({"no_such_field": "1"})
+    with pytest.raises(NimbusError, match="expected a value"):
+        fast.with_overrides({"iterations": "many"})
+    with pytest.raises(NimbusError):
+        preset("huge")
+
+
+def test_training_is_deterministic_and_writes_outputs(scene, tmp_path):
+    r1 = GaussianTrainer(scene, _cfg(), tmp_path / "a", seed=3, progress=False).train()
+    r2 = GaussianTrainer(scene, _cfg(), tmp_path / "b", seed=3, progress=False).train()
+    assert r1["psnr"] == r2["psnr"] and r1["num_gaussians"] == r2["num_gaussians"]
+    assert (tmp_path / "a" / "point_cloud.ply").read_bytes() == (tmp_path / "b" / "point_cloud.ply").read_bytes()
+    for name in ("config.json", CHECKPOINT, "train_log.jsonl", "results.json", "point_cloud.ply"):
+        assert (tmp_path / "a" / name).is_file(), name
+    renders = sorted(p.name for p in (tmp_path / "a" / "renders" / "test").iterdir())
+    assert renders == sorted(v.stem + ".png" for v in scene.test_views)
+    res = json.loads((tmp_path / "a" / "results.json").read_text())
+    assert set(res["per_view"]) == {v.name for v in scene.test_views}
+    assert math.isfinite(res["psnr"]) and 0 < res["ssim"] <= 1 and res["num_gaussians"] > 0
+    assert res["train_time_s"] > 0 and res["peak_memory_mb"] > 0
+    log = [json.loads(line) for line in (tmp_path / "a" / "train_log.jsonl").read_text().splitlines()]
+    assert any(rec.get("event") == "densify" for rec in log)
+    assert any(rec.get("event") == "opacity_reset" for rec in log)
+
+
+def test_training_improves_the_fit(scene, tmp_path):
+    """Sixty iterations must fit the training views better than the initialisation does."""
+    t = GaussianTrainer(scene, _cfg(iterations=60, densify_until=40, opacity_reset_interval=1000), tmp_path / "r", seed=0, progress=False)
+    with torch.no_grad():
+        before = np.mean([float((t.render(v)["rgb"] - img).abs().mean())
+                          for v, img in zip(t.train_views, t.train_images)])
+    t.train()
+    with torch.no_grad():
+        after = np.mean([float((t.render(v)["rgb"] - img).abs().mean())
+                         for v, img in zip(t.train_views, t.train_images)])
+    assert after < 0.9 * before
+
+
+def test_resume_continues_to_the_same_result(scene, tmp_path):
+    full = GaussianTrainer(scene, _cfg(), tmp_path / "full", seed=1, progress=False).train()
+
+    class Interrupted(GaussianTrainer):
+        def after_step(self, it):
+            super().after_step(it)
+            if it == 8:  # killed after the iteration-6 checkpoint
+                raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        Interrupted(scene, _cfg(), tmp_path / "half", seed=1, progress=False).train()
+    resumed = GaussianTrainer(scene, _cfg(), tmp_path / "half", seed=1, progress=False)
+    resumed.load_checkpoint(tmp_path / "half" / CHECKPOINT)
+    assert resumed.iteration == 6
+    out = resumed.train()
+    assert out["iterations"] == 12
+    assert out["num_gaussians"] == full["num_gaussians"]
+    assert out["psnr"] == pytest.approx(full["psnr"], abs=1e-4)
+
+
+def test_nan_loss_stops_with_clear_message_and_keeps_last_good(scene, tmp_path):
+    class Broken(GaussianTrainer):
+        def compute_loss(self, vi, render, gt):
+            loss = super().compute_loss(vi, render, gt)
+            return loss * float("nan") if self.iteration >= 4 else loss
+
+    t = Broken(scene, _cfg(), tmp_path / "nan", seed=0, progress=False)
+    with pytest.raises(NimbusError, match="iteration 5"):
+        t.train()
+    state = torch.load(tmp_path / "nan" / LAST_GOOD, weights_only=False)
+    assert state["iteration"] == 4
+    assert all(torch.isfinite(v).all() for v in state["params"]["tensors"].values())
+
+
+def test_every_gaussian_pruned_stops_cleanly(scene, tmp_path):
+    cfg = _cfg(prune_opacity=0.999)  # prunes everything at the first densification step
+    with pytest.raises(NimbusError, match="every Gaussian was pruned"):
+        GaussianTrainer(scene, cfg, tmp_path / "empty", seed=0, progress=False).train()
+
+
+def test_view_with_no_visible_gaussian_does_not_crash(scene, tmp_path):
+    t = GaussianTrainer(scene, _cfg(iterations=3, densify_from=100), tmp_path / "far", seed=0, progress=False)
+    with torch.no_grad():
+        t.params["means"].add_(1e6)  # everything far outside every view
+    t.train()
+    log = (tmp_path / "far" / "train_log.jsonl").read_text()
+    assert "no_visible_gaussians" in log
+
+
+def test_ply_has_standard_fields_and_round_trips(scene, tmp_path):
+    t = GaussianTrainer(scene, _cfg(iterations=2), tmp_path / "p", seed=0, progress=False)
+    t.train()
+    raw = (tmp_path / "p" / "point_cloud.ply").read_bytes()
+    header = raw[: raw.index(b"end_header")].decode()
+    names = [line.split()[2] for line in header.splitlines() if line.startswith("property")]
+    assert names == ply_property_names(4)
+    assert names[:3] == ["x", "y", "z"] and "f_dc_0" in names and "f_rest_8" in names and names[-1] == "rot_3"
+    back = read_gaussian_ply(tmp_path / "p" / "point_cloud.ply")
+    g = t.gaussians().detach()
+    np.testing.assert_allclose(back["means"], g.means.numpy(), rtol=1e-6)
+    np.testing.assert_allclose(back["sh"], g.sh.numpy(), rtol=1e-6)
+    np.testing.assert_allclose(back["quats_wxyz"], g.quats.numpy(), rtol=1e-6)
+
+
+def test_densify_keeps_optimizer_state_aligned():
+    n = 5
+    tensors = {"means": torch.zeros(n, 3), "log_scales": torch.log(torch.full((n, 3), 0.5)),
+               "quats": torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), "opacity_logits": torch.zeros(n),
+               "sh_dc": torch.zeros(n, 1, 3), "sh_rest": torch.zeros(n, 3, 3)}
+    params = GaussianParams(tensors, {k: 0.01 for k in tensors}, 1e-15)
+    sum(v.sum() for v in params.tensors.values()).backward()
+    params.optimizer.step()
+    cfg = TrainConfig(densify_grad_threshold=0.5, percent_dense=0.1, opacity_reset_interval=10**6)
+    dc = DensityController(cfg, extent=1.0, generator=torch.Generator().manual_seed(0))
+    grads = torch.tensor([[1.0, 0], [0, 0], [1.0, 0], [0, 0], [0, 0]]) / 32 * 2  # NDC norm 1 for 0 and 2
+    dc.accumulate(grads, torch.tensor([3, 3, 3, 0, 3]), 64, 48)
+    with torch.no_grad():
+        params["log_scales"][2] = math.log(0.01)  # small: cloned; Gaussian 0 is big: split in two
+    parent_scale = torch.exp(params["log_scales"][0].detach().clone())
+    counts = dc.densify_and_prune(params, it=1)
+    assert counts == {"cloned": 1, "split": 1, "pruned": 1}
+    assert len(params) == 5 - 1 + 1 + 2
+    for group in params.optimizer.param_groups:
+        p = group["params"][0]
+        st = params.optimizer.state[p]
+        assert p.shape[0] == len(params) and st["exp_avg"].shape == p.shape
+    split_scales = torch.exp(params["log_scales"][-2:])
+    torch.testing.assert_close(split_scales, (parent_scale / 1.6).expand(2, 3))
