@@ -1,1 +1,2 @@
-"""Speed and quality measurements of Nimbus (scripts; run with ``python -m benchmark.<name>``)."""
+"""The benchmark harness (``nimbus-bench``: metrics, scoring of any method's renders, LPIPS weight set-up)
+and speed / quality measurement scripts (run with ``python -m benchmark.bench_<name>``)."""

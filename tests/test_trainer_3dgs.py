@@ -135,6 +135,11 @@ def test_ply_has_standard_fields_and_round_trips(scene, tmp_path):
     names = [line.split()[2] for line in header.splitlines() if line.startswith("property")]
     assert names == ply_property_names(4)
     assert names[:3] == ["x", "y", "z"] and "f_dc_0" in names and "f_rest_8" in names and names[-1] == "rot_3"
+    plyfile = pytest.importorskip("plyfile")  # an independent, standard PLY reader
+    vertex = plyfile.PlyData.read(str(tmp_path / "p" / "point_cloud.ply"))["vertex"]
+    assert vertex.count == len(t.params)
+    np.testing.assert_allclose(vertex["f_dc_1"], t.gaussians().sh_dc[:, 0, 1].detach().numpy(), rtol=1e-6)
+    np.testing.assert_allclose(vertex["rot_0"], t.gaussians().quats[:, 0].detach().numpy(), rtol=1e-6)
     back = read_gaussian_ply(tmp_path / "p" / "point_cloud.ply")
     g = t.gaussians().detach()
     np.testing.assert_allclose(back["means"], g.means.numpy(), rtol=1e-6)

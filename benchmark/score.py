@@ -1,0 +1,305 @@
+"""Score any method's renders against a scene's ground truth (``nimbus-bench score``).
+
+Renders are matched to the scene's views by name: for view ``images/000.png`` the
+render is ``RENDERS/000.png`` or ``RENDERS/000.jpg`` (any image extension; views in
+sub-folders keep their sub-folder).  A nerfbaselines render folder (images under
+``color/``) is recognised.  The ground truth of each view is, in this order of
+preference, ``--gt-dir/<name>``, ``SCENE/clean/<name>`` (datasets written by
+``nimbus-synth degrade``: ``images/`` holds the degraded inputs there), or the
+scene's own image.  Missing or mis-sized renders are an error that lists them: a
+benchmark figure over a subset of the views would not be comparable.
+
+The results file holds per-view values, the sha256 of every prediction and ground
+truth file, the protocols and the software versions, so a figure can be traced back to
+the exact images it came from.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import platform
+import sys
+import time
+import warnings
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from benchmark.lpips import LPIPS_NETS
+from benchmark.metrics import LPIPS, SSIM_PROTOCOLS, Scorer, summarize
+from nimbus import __version__
+from nimbus.data import load_scene
+from nimbus.data.images import read_image
+from nimbus.data.io import format_names, image_size, list_images
+from nimbus.errors import NimbusError
+from nimbus.utils.fs import atomic_write_json, sha256_file
+
+FORMAT = "nimbus-bench-score/1"
+SPLITS = ("test", "train", "all")
+CLEAN_DIR = "clean"        # ground-truth folder of a weather_synth setting folder
+NERFBASELINES_DIR = "color"  # where nerfbaselines writes its renders
+SCORE_CHUNK = 8            # views read and scored at a time (bounds memory for large scenes)
+
+
+# --- matching ----------------------------------------------------------------------------
+class ImageIndex:
+    """Image files of a folder, looked up by view name: exact name first, else same path without extension."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.files = list_images(folder)
+        self.exact = set(self.files)
+        self.by_stem: dict[str, list[str]] = {}
+        for f in self.files:
+            self.by_stem.setdefault(str(Path(f).with_suffix("")), []).append(f)
+
+    def find(self, name: str) -> Path | None:
+        """The file for view ``name``, None when there is none; NimbusError when several fit."""
+        if name in self.exact:
+            return self.folder / name
+        hits = self.by_stem.get(str(Path(name).with_suffix("")), [])
+        if len(hits) > 1:
+            raise NimbusError(f"{self.folder} has several images for view {name}: {', '.join(sorted(hits))}; "
+                              "keep one")
+        return self.folder / hits[0] if hits else None
+
+
+def _select_views(scene, split: str) -> list:
+    if split not in SPLITS:
+        raise NimbusError(f"unknown split {split!r}; use one of {', '.join(SPLITS)}")
+    views = {"test": scene.test_views, "train": scene.train_views, "all": list(scene.views)}[split]
+    if not views:
+        raise NimbusError(f"the scene has no {split} views (see its test_list.txt / train_list.txt); "
+                          "choose another --split")
+    return views
+
+
+def _ground_truth(scene, scene_dir: Path, views: list, gt_dir: Path | None) -> tuple[list[Path], str]:
+    """Ground-truth file of each view and where they came from."""
+    if gt_dir is None and (scene_dir / CLEAN_DIR).is_dir():
+        gt_dir, source = scene_dir / CLEAN_DIR, f"{CLEAN_DIR}/ (clean images of a degraded dataset)"
+    elif gt_dir is not None:
+        if not gt_dir.is_dir():
+            raise NimbusError(f"--gt-dir {gt_dir} is not a folder")
+        source = f"--gt-dir {gt_dir}"
+    else:
+        source = "the scene's images"
+    paths, missing = [], []
+    index = ImageIndex(gt_dir) if gt_dir is not None else None
+    for v in views:
+        p = index.find(v.name) if index is not None else v.image_path
+        if p is None or not Path(p).is_file():
+            missing.append(v.name)
+        paths.append(p)
+    if missing:
+        where = gt_dir if gt_dir is not None else scene_dir
+        raise NimbusError(f"{len(missing)} of {len(views)} views have no ground-truth image in {where}: "
+                          f"{format_names(missing)}")
+    return paths, source
+
+
+def _renders(pred_dir: Path, views: list) -> tuple[list[Path], Path, int]:
+    """Render file of each view, the folder they were found in, and how many render files went unused."""
+    if not pred_dir.is_dir():
+        raise NimbusError(f"renders folder {pred_dir} does not exist")
+    index = ImageIndex(pred_dir)
+    found = [index.find(v.name) for v in views]
+    if not any(found) and (pred_dir / NERFBASELINES_DIR).is_dir():
+        return _renders(pred_dir / NERFBASELINES_DIR, views)
+    if not index.files:
+        raise NimbusError(f"renders folder {pred_dir} holds no images; render the views first")
+    missing = [v.name for v, p in zip(views, found) if p is None]
+    if missing:
+        raise NimbusError(
+            f"{len(missing)} of {len(views)} views have no render in {pred_dir}: {format_names(missing)} "
+            f"(expected e.g. {Path(missing[0]).with_suffix('.png')}); render every view of the split, or choose "
+            "another --split"
+        )
+    return found, pred_dir, len(index.files) - len(set(found))
+
+
+def _check_sizes(views: list, preds: list[Path], gts: list[Path]) -> None:
+    bad = []
+    for v, p, g in zip(views, preds, gts):
+        ps, gs = image_size(p), image_size(g)
+        if ps != gs:
+            bad.append(f"{p.name} is {ps[0]}x{ps[1]}, ground truth {gs[0]}x{gs[1]}")
+    if bad:
+        raise NimbusError(f"{len(bad)} render(s) do not match the ground truth's size: {'; '.join(bad[:5])}"
+                          f"{' ...' if len(bad) > 5 else ''}; render at the ground truth's resolution "
+                          "(or pick the matching --downscale)")
+
+
+# --- scoring -----------------------------------------------------------------------------
+def score_renders(pred_dir: str | Path, scene_dir: str | Path, split: str = "test", ssim_protocol: str = "3dgs",
+                  lpips_net: "str | LPIPS | None" = "vgg", gt_dir: str | Path | None = None, downscale: int = 1,
+                  device: str | None = None, progress: Callable[[int, int], None] | None = None) -> dict:
+    """Score the renders in ``pred_dir`` against the ground truth of a scene.
+
+    Parameters
+    ----------
+    pred_dir : path
+        Folder of renders named after the views (``<stem>.png`` / ``.jpg``).
+    scene_dir : path
+        A scene folder :func:`nimbus.data.load_scene` reads (COLMAP or transforms.json); its
+        split lists select the views.
+    split : {"test", "train", "all"}
+    ssim_protocol : {"3dgs", "skimage", "dmpix"}
+    lpips_net : {"vgg", "alex"}, None or LPIPS
+        None skips LPIPS; pass an :class:`benchmark.metrics.LPIPS` to reuse a loaded network.
+        Without the weights set up, LPIPS is None with a note.
+    gt_dir : path, optional
+        Folder of ground-truth images (default ``SCENE/clean`` when it exists, else the scene's images).
+    downscale : int
+        Read the scene's ``images_<d>`` folder (Mip-NeRF360 layout).
+    device : str, optional
+        LPIPS device (default CUDA when available, else CPU).
+    progress : callable(done, total), optional
+        Called after each chunk of views.
+
+    Returns
+    -------
+    dict
+        JSON-ready: ``per_view`` (name, psnr, ssim, lpips, file paths and sha256), ``mean``,
+        ``protocol``, ``notes``, ``versions`` and the inputs.  Non-finite values are None.
+    """
+    pred_dir, scene_dir = Path(pred_dir), Path(scene_dir)
+    if not scene_dir.exists():
+        raise NimbusError(f"scene folder {scene_dir} does not exist")
+    _refuse_dataset_root(scene_dir)
+    scene = load_scene(scene_dir, downscale=downscale)
+    views = _select_views(scene, split)
+    gts, gt_source = _ground_truth(scene, scene_dir, views, None if gt_dir is None else Path(gt_dir))
+    preds, pred_dir, unused = _renders(pred_dir, views)
+    _check_sizes(views, preds, gts)
+
+    scorer = Scorer(ssim_protocol, lpips_net, device=device)
+    values: dict[str, list] = {}
+    for s in range(0, len(views), SCORE_CHUNK):
+        chunk = slice(s, s + SCORE_CHUNK)
+        part = scorer([read_image(p) for p in preds[chunk]], [read_image(g) for g in gts[chunk]])
+        for k, v in part.items():
+            values.setdefault(k, []).extend(v)
+        if progress is not None:
+            progress(min(s + SCORE_CHUNK, len(views)), len(views))
+    names = [v.name for v in views]
+    result = summarize(names, values, scorer)
+    for rec, p, g in zip(result["per_view"], preds, gts):
+        rec.update(pred=str(p), gt=str(g), pred_sha256=sha256_file(p), gt_sha256=sha256_file(g))
+    if unused:
+        result["notes"].append(f"{unused} image(s) in {pred_dir} are not {split} views and were not scored")
+    result.update({
+        "format": FORMAT,
+        "pred_dir": str(pred_dir.resolve()),
+        "scene": str(scene_dir.resolve()),
+        "ground_truth": gt_source,
+        "split": split,
+        "views": len(views),
+        "downscale": downscale,
+        "versions": versions(),
+    })
+    return jsonable(result)
+
+
+def _refuse_dataset_root(scene_dir: Path) -> None:
+    """A ``nimbus-synth degrade`` output root holds one scene per setting; say which folder to pass."""
+    if (scene_dir / "index.json").is_file() and not (scene_dir / "sparse").exists() \
+            and not (scene_dir / "transforms.json").exists():
+        settings = sorted(p.name for p in scene_dir.iterdir() if (p / CLEAN_DIR).is_dir())
+        if settings:
+            raise NimbusError(f"{scene_dir} is a degraded dataset with one scene per weather setting "
+                              f"({', '.join(settings)}); pass one of them, e.g. --gt {scene_dir / settings[0]}")
+
+
+def versions() -> dict[str, str]:
+    """Software versions that can change the figures."""
+    return {"nimbus": __version__, "torch": torch.__version__, "numpy": np.__version__,
+            "python": platform.python_version()}
+
+
+def jsonable(obj: Any) -> Any:
+    """Replace non-finite floats by None (strict JSON has no inf / NaN) and numpy scalars by Python ones."""
+    if isinstance(obj, dict):
+        return {k: jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj
+
+
+def format_table(result: dict) -> str:
+    """Per-view table, the mean and the protocols, as printed by ``nimbus-bench score``."""
+    rows = result["per_view"]
+    width = max([len("mean")] + [len(r["name"]) for r in rows])
+
+    def fmt(v: float | None, spec: str) -> str:
+        return "n/a" if v is None else format(v, spec)
+
+    lines = [f"{'view':<{width}}  {'PSNR':>7}  {'SSIM':>6}  {'LPIPS':>6}"]
+    for r in rows + [dict(result["mean"], name="mean")]:
+        if r.get("name") == "mean":
+            lines.append("-" * len(lines[0]))
+        # PSNR is None only where it was infinite (identical images; JSON has no inf).
+        psnr_s = "inf" if r["psnr"] is None else format(r["psnr"], "7.3f")
+        lines.append(f"{r['name']:<{width}}  {psnr_s:>7}  {fmt(r['ssim'], '6.4f'):>6}  {fmt(r['lpips'], '6.4f'):>6}")
+    proto = result["protocol"]
+    lines += [f"PSNR:  {proto['psnr']}",
+              f"SSIM:  {proto['ssim']} ({proto['ssim_reference']})",
+              f"LPIPS: {proto['lpips'] or 'not computed'}"]
+    lines += [f"note: {n}" for n in result["notes"]]
+    return "\n".join(lines)
+
+
+# --- command line (``nimbus-bench score``) -------------------------------------------------
+HELP = "score any method's renders (PSNR / SSIM / LPIPS) against a scene's ground truth, matched by view name"
+EXAMPLE = "nimbus-bench score --pred renders/ --gt data/garden_H --ssim 3dgs --lpips vgg --out results.json"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--pred", required=True, metavar="DIR", help="folder of renders named after the views")
+    p.add_argument("--gt", required=True, metavar="SCENE",
+                   help="scene folder (COLMAP / transforms.json); a degraded setting folder is scored against "
+                        "its clean/ images")
+    p.add_argument("--gt-dir", metavar="DIR", default=None,
+                   help="folder of ground-truth images to use instead of SCENE/clean or the scene's images")
+    p.add_argument("--split", choices=SPLITS, default="test", help="which views to score")
+    p.add_argument("--ssim", choices=tuple(SSIM_PROTOCOLS), default="3dgs",
+                   help="SSIM protocol: 3dgs (paper), skimage, dmpix (nerfbaselines)")
+    p.add_argument("--lpips", choices=LPIPS_NETS + ("none",), default="vgg", help="LPIPS network (vgg: paper)")
+    p.add_argument("--downscale", type=int, default=1, help="use the scene's images_<d> folder")
+    p.add_argument("--device", default=None, help="LPIPS device, e.g. cpu or cuda (unset: cuda when available, else cpu)")
+    p.add_argument("--out", metavar="FILE", default=None, help="write the results as JSON")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+
+
+def run(args: argparse.Namespace) -> int:
+    out = Path(args.out) if args.out else None
+    if out is not None:  # before any work: a bad --out should not cost a scoring run
+        if out.is_dir():
+            raise NimbusError(f"--out {out} is a folder; give a file name such as results.json")
+        if out.exists() and not args.overwrite:
+            raise NimbusError(f"--out {out} exists; pass --overwrite to replace it or choose another file")
+    t0 = time.perf_counter()
+
+    def progress(done: int, total: int) -> None:
+        print(f"\rscored {done}/{total} views", end="" if done < total else "\n", file=sys.stderr, flush=True)
+
+    with warnings.catch_warnings():  # a missing LPIPS is reported below, in the table and in the file
+        warnings.simplefilter("ignore", UserWarning)
+        result = score_renders(args.pred, args.gt, split=args.split, ssim_protocol=args.ssim,
+                               lpips_net=None if args.lpips == "none" else args.lpips, gt_dir=args.gt_dir,
+                               downscale=args.downscale, device=args.device, progress=progress)
+    print(format_table(result))
+    if result["lpips_missing"]:
+        print(f"warning: LPIPS is missing; run `{result['setup_command']}` and score again", file=sys.stderr)
+    if out is not None:
+        atomic_write_json(out, result)
+        print(f"wrote {out}")
+    print(f"{result['views']} views in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    return 0
