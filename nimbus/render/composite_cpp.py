@@ -1,0 +1,259 @@
+"""Compiled CPU alpha compositing (forward and backward) for the tile rasterizer.
+
+A drop-in replacement for :func:`nimbus.render.composite_torch.composite` (same
+positional signature, rules and outputs), built from ``nimbus/render/_cpp/composite.cpp``
+with :func:`torch.utils.cpp_extension.load` on first use and cached: in
+``$NIMBUS_EXT_DIR/<name>`` when that variable is set, else in torch's extension
+directory (``$TORCH_EXTENSIONS_DIR`` or ``~/.cache/torch_extensions``).  The first build
+takes about 10-15 s (g++ and ninja); later processes only load the cached library, and
+an edited source is rebuilt.
+
+Call :func:`available` before :func:`composite`: it builds/loads the kernel once per
+process and returns False, after ONE warning line, when that is impossible (no
+compiler, failed build); the caller then uses the torch compositor.
+``NIMBUS_DISABLE_CPP=1`` makes it return False without trying and without warning.
+
+Contract
+--------
+Pixel ``(u, v)`` has its centre at ``(u + 0.5, v + 0.5)``.  For a pixel, walk its tile's
+list front to back; for Gaussian ``i`` with ``dx = u + 0.5 - mean_x`` (``dy`` alike)::
+
+    sigma   = 0.5 * (a dx^2 + c dy^2) + b dx dy
+    alpha_i = min(0.99, opacity_i * exp(-sigma))      # skipped if sigma < 0 or alpha_i < 1/255
+    stop BEFORE Gaussian i if T * (1 - alpha_i) < 1e-4 (that Gaussian is excluded)
+    rgb   = sum c_i alpha_i T_i + T_final * background
+    depth = sum z_i alpha_i T_i                       # not normalised by alpha
+    alpha = 1 - T_final
+
+Gradients flow to means2d, conics, colors, opacities, depths and background; where
+alpha is clamped at 0.99 the gradient w.r.t. opacity and sigma is zero.  Gaussians with
+a non-finite mean, conic or opacity contribute nothing.  float32 and float64 are both
+supported (float32 evaluates exp with a ~1 ulp polynomial, float64 with ``std::exp``).
+
+Densification statistic ("absgrad"): pass ``absgrad=`` a zero [M, 2] tensor; the
+backward adds to it, per Gaussian and axis, the sum over pixels of ``|d loss / d means2d|``
+of each pixel's contribution (gsplat's absgrad).  The ordinary ``means2d.grad`` is the
+signed sum.
+
+Threads follow :func:`torch.get_num_threads`; tiles are scheduled dynamically and the
+gradients are summed in a fixed order, so every output is bitwise identical for any
+thread count.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+import warnings
+from pathlib import Path
+
+import torch
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+__all__ = ["available", "load_error", "composite"]
+
+_SOURCES = (Path(__file__).parent / "_cpp" / "composite.cpp",)
+# The torch version is part of the name: a cached build is only valid for the torch it was built against.
+_NAME = "nimbus_composite_t" + "".join(ch if ch.isalnum() else "_" for ch in torch.__version__)
+# Portable flags (no -march=native: the cached library may be shared between machines; the
+# source adds AVX2/AVX-512 clones picked at load time); no -ffast-math and no FMA contraction,
+# so the rules above hold as written.  -fno-trapping-math lets masked selects be vectorised
+# and changes no result.  -fopenmp: at::parallel_for runs on torch's OpenMP pool.
+_CFLAGS = ("-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math", "-Wno-psabi")
+_LDFLAGS = ("-fopenmp",)
+# torch's build lock is a plain file that a killed build leaves behind, after which every
+# later load would wait forever; a build takes well under a minute, so an older lock is stale.
+_STALE_LOCK_S = 600.0
+
+_lock = threading.Lock()
+_state: dict = {"tried": False, "ok": False, "error": None, "warned": False}
+
+
+def _clear_stale_lock(build_dir: str) -> None:
+    lock = os.path.join(build_dir, "lock")
+    try:
+        if time.time() - os.path.getmtime(lock) > _STALE_LOCK_S:
+            os.remove(lock)
+    except OSError:  # no lock, or another process removed it first
+        pass
+
+
+def _build() -> None:
+    from torch.utils import cpp_extension
+
+    if os.environ.get("NIMBUS_EXT_DIR"):
+        build_dir = os.path.join(os.environ["NIMBUS_EXT_DIR"], _NAME)
+    else:
+        try:  # torch's default location (a private helper: tolerate its absence)
+            build_dir = cpp_extension._get_build_directory(_NAME, verbose=False)
+        except (AttributeError, TypeError):
+            build_dir = None
+    if build_dir is not None:
+        os.makedirs(build_dir, exist_ok=True)
+        _clear_stale_lock(build_dir)
+    cpp_extension.load(
+        name=_NAME,
+        sources=[str(p) for p in _SOURCES],
+        extra_cflags=list(_CFLAGS),
+        extra_ldflags=list(_LDFLAGS),
+        build_directory=build_dir,
+        is_python_module=False,
+        verbose=False,
+    )
+
+
+def available(warn: bool = True) -> bool:
+    """Whether the compiled kernel can be used; builds or loads it on the first call.
+
+    Parameters
+    ----------
+    warn : bool
+        On failure, emit one :class:`RuntimeWarning` per process saying why and that the
+        slower torch compositor will be used.
+
+    Returns
+    -------
+    bool
+        False when ``NIMBUS_DISABLE_CPP=1`` or when the build/load failed (reason in
+        :func:`load_error`).  Never raises.
+    """
+    if os.environ.get("NIMBUS_DISABLE_CPP", "") not in ("", "0"):
+        return False
+    with _lock:
+        if not _state["tried"]:
+            _state["tried"] = True
+            try:
+                _build()
+                _state["ok"] = True
+            except Exception as exc:  # noqa: BLE001 - any build/load failure means "fall back"
+                lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+                # A compiler's "error:" line says more than ninja's closing "build stopped".
+                errors = [ln for ln in lines if "error:" in ln]
+                line = (errors or lines[-1:] or [repr(exc)])[0]
+                _state["error"] = f"{type(exc).__name__}: {line[:300]}"
+        if not _state["ok"] and warn and not _state["warned"]:
+            _state["warned"] = True
+            warnings.warn(
+                f"nimbus: compiled compositing kernel unavailable ({_state['error']}); "
+                "using the slower torch compositor",
+                RuntimeWarning,
+                stacklevel=2,
+            )
+        return _state["ok"]
+
+
+def load_error() -> str | None:
+    """Why the kernel could not be built or loaded (one line), or None."""
+    return _state["error"]
+
+
+class _Composite(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, colors, opacities, depths, background, isect_ids, tile_offsets,
+                width, height, tile_size, absgrad):
+        rgb, depth, alpha, t_final, last = torch.ops.nimbus_composite.composite_forward(
+            means2d, conics, colors, opacities, depths, isect_ids, tile_offsets,
+            width, height, tile_size, background)
+        ctx.save_for_backward(means2d, conics, colors, opacities, depths, background, isect_ids,
+                              tile_offsets, t_final, last)
+        ctx.size = (width, height, tile_size)
+        ctx.absgrad = absgrad
+        return rgb, depth, alpha
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_rgb, grad_depth, grad_alpha):
+        means2d, conics, colors, opacities, depths, background, isect_ids, tile_offsets, t_final, last = (
+            ctx.saved_tensors)
+        width, height, tile_size = ctx.size
+        g_means, g_conics, g_colors, g_opac, g_depths, g_abs = torch.ops.nimbus_composite.composite_backward(
+            means2d, conics, colors, opacities, depths, isect_ids, tile_offsets, width, height, tile_size,
+            background, t_final, last, grad_rgb.contiguous(), grad_depth.contiguous(),
+            grad_alpha.contiguous())
+        if ctx.absgrad is not None:
+            ctx.absgrad.add_(g_abs)
+        g_bg = None
+        if ctx.needs_input_grad[5]:
+            g_bg = (grad_rgb * t_final[..., None]).sum(dim=(0, 1))
+        return g_means, g_conics, g_colors, g_opac, g_depths, g_bg, None, None, None, None, None, None
+
+
+def composite(
+    means2d: Tensor,
+    conics: Tensor,
+    colors: Tensor,
+    opacities: Tensor,
+    depths: Tensor,
+    isect_ids: Tensor,
+    tile_offsets: Tensor,
+    width: int,
+    height: int,
+    tile_size: int,
+    background: Tensor,
+    *,
+    absgrad: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Alpha-composite tile-sorted 2D Gaussians into an image (compiled kernel; see module doc).
+
+    Builds/loads the kernel on first use; raises RuntimeError when that is impossible
+    (call :func:`available` first to fall back instead).
+
+    Parameters
+    ----------
+    means2d : Tensor [M, 2]
+        Pixel coordinates of the centres, pixel-corner origin.
+    conics : Tensor [M, 3]
+        (a, b, c) of the inverse 2D covariance, in 1 / pixel^2.
+    colors : Tensor [M, 3]
+        Colours (any range; typically [0, 1]).
+    opacities : Tensor [M]
+        Opacities in (0, 1) (after the sigmoid).
+    depths : Tensor [M]
+        Camera z of the Gaussians (> 0), composited into the depth output.
+    isect_ids : Tensor [I] int64
+        Gaussian indices grouped by tile (row-major) and front to back within a tile.
+    tile_offsets : Tensor [T + 1] int64
+        Tile ``t`` owns ``isect_ids[tile_offsets[t]:tile_offsets[t + 1]]``;
+        ``T = ceil(width / tile_size) * ceil(height / tile_size)``.
+    width, height, tile_size : int
+        Image and tile size in pixels.
+    background : Tensor [3]
+        Colour behind all Gaussians (converted to the inputs' dtype).
+    absgrad : Tensor [M, 2], optional
+        Densification statistic.  When given, the backward ADDS to it, per Gaussian and
+        per axis, the sum over pixels of ``|d loss / d means2d|`` of that pixel's
+        contribution (gsplat's "absgrad").  Pass a zero tensor (or a running
+        accumulator) of the inputs' dtype; it is filled when ``loss.backward()`` runs.
+
+    All float tensors must share one dtype, float32 or float64, and live on the CPU.
+
+    Returns
+    -------
+    rgb : Tensor [H, W, 3]
+    depth : Tensor [H, W]
+        Expected depth ``sum z_i alpha_i T_i`` (divide by ``alpha`` to normalise).
+    alpha : Tensor [H, W]
+        Accumulated opacity ``1 - T_final`` in [0, 1).
+    """
+    if not _state["ok"] and not available(warn=False):
+        reason = load_error() or "disabled by NIMBUS_DISABLE_CPP"
+        raise RuntimeError(f"composite_cpp: the compiled kernel is unavailable ({reason}); "
+                           "check available() first and use the torch compositor")
+    dtype = means2d.dtype
+    background = torch.as_tensor(background).to(dtype=dtype).reshape(3)
+    floats = (means2d, conics, colors, opacities, depths, background)
+    if dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"composite_cpp: float32 or float64 expected, got {dtype}")
+    if any(t.dtype != dtype for t in floats) or any(t.device.type != "cpu" for t in floats):
+        raise TypeError("composite_cpp: all float inputs must be CPU tensors of one dtype")
+    m = means2d.shape[0]
+    if absgrad is not None and (absgrad.shape != (m, 2) or absgrad.dtype != dtype):
+        raise ValueError(f"composite_cpp: absgrad must be [{m}, 2] {dtype}, got {tuple(absgrad.shape)} "
+                         f"{absgrad.dtype}")
+    # Shapes, index ranges and offsets are checked in C++ (they guard memory accesses).
+    return _Composite.apply(
+        means2d.contiguous(), conics.contiguous(), colors.contiguous(), opacities.contiguous(),
+        depths.contiguous(), background.contiguous(), isect_ids.contiguous(), tile_offsets.contiguous(),
+        int(width), int(height), int(tile_size), absgrad)
