@@ -32,3 +32,41 @@ class ArgumentParser(argparse.ArgumentParser):
         self.print_usage(sys.stderr)
         print(f"error: {message}", file=sys.stderr)
         raise SystemExit(2)
+
+
+class SubcommandTool:
+    """A command-line tool whose subcommands each live in their own module.
+
+    ``commands`` maps subcommand name -> module path, in ``--help`` order.  Each module
+    defines ``HELP`` (one line), ``EXAMPLE`` (one command line), ``add_arguments(parser)``
+    and ``run(args) -> int``.  ``--help`` lists every subcommand with its example.
+    """
+
+    def __init__(self, prog: str, description: str, commands: dict[str, str]) -> None:
+        self.prog, self.description, self.commands = prog, description, commands
+
+    def build_parser(self) -> ArgumentParser:
+        import importlib
+
+        modules = {name: importlib.import_module(mod) for name, mod in self.commands.items()}
+        width = max(len(name) for name in modules) + 2
+        epilog = "commands:\n" + "\n".join(
+            f"  {name:<{width}} {m.HELP}\n  {'':<{width}} e.g. {m.EXAMPLE}" for name, m in modules.items())
+        parser = ArgumentParser(prog=self.prog, description=self.description, epilog=epilog,
+                                formatter_class=HelpFormatter)
+        sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+        for name, m in modules.items():
+            p = sub.add_parser(name, help=m.HELP, description=f"{m.HELP}\n\nexample:\n  {m.EXAMPLE}",
+                               formatter_class=HelpFormatter)
+            m.add_arguments(p)
+            p.set_defaults(_run=m.run)
+        return parser
+
+    def run(self, argv: Sequence[str] | None = None) -> int:
+        """Parse ``argv`` and run the subcommand (a NimbusError propagates; see :meth:`main`)."""
+        args = self.build_parser().parse_args(argv)
+        return args._run(args)
+
+    def main(self, argv: Sequence[str] | None = None) -> int:
+        """Console-script entry point: ``error: ...`` and exit 2 on a user error."""
+        raise SystemExit(run_cli(self.run, argv))

@@ -226,16 +226,16 @@ def test_setup_refuses_tampered_files_and_reports_damaged_cache(fake_source, tmp
 
 
 def test_setup_weights_cli_check(fake_source, capsys):
-    from benchmark.cli import _main
+    from benchmark.cli import TOOL
     from nimbus.cli_util import run_cli
 
     archive, _ = fake_source
-    assert run_cli(_main, ["setup-weights", "--net", "alex", "--check"]) == 1
+    assert run_cli(TOOL.run, ["setup-weights", "--net", "alex", "--check"]) == 1
     assert "MISSING" in capsys.readouterr().out
-    assert run_cli(_main, ["setup-weights", "--net", "alex", "--archive", str(archive)]) == 0
+    assert run_cli(TOOL.run, ["setup-weights", "--net", "alex", "--archive", str(archive)]) == 0
     assert "alex written" in capsys.readouterr().out
-    assert run_cli(_main, ["setup-weights", "--net", "alex", "--check"]) == 0
-    assert run_cli(_main, ["setup-weights", "--net", "alex", "--archive", "/nonexistent.tar.gz", "--force"]) == 2
+    assert run_cli(TOOL.run, ["setup-weights", "--net", "alex", "--check"]) == 0
+    assert run_cli(TOOL.run, ["setup-weights", "--net", "alex", "--archive", "/nonexistent.tar.gz", "--force"]) == 2
     assert "does not exist" in capsys.readouterr().err
 
 

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from benchmark.cli import _main
+from benchmark.cli import TOOL
 from benchmark.lpips import random_state_dict
 from benchmark.metrics import LPIPS, psnr, ssim
 from benchmark.score import score_renders
@@ -36,7 +36,7 @@ def bench(tmp_path, make_scene, monkeypatch):
 
 
 def cli(argv: list[str]) -> int:
-    return run_cli(_main, argv)
+    return run_cli(TOOL.run, argv)
 
 
 def test_scores_test_views_with_hashes(bench):
