@@ -8,6 +8,10 @@ directory (``$TORCH_EXTENSIONS_DIR`` or ``~/.cache/torch_extensions``).  The fir
 takes about 10-15 s (g++ and ninja); later processes only load the cached library, and
 an edited source is rebuilt.
 
+The same library holds ``_cpp/project.cpp``: :func:`project_and_shade` (projection, SH
+colour and opacity of all Gaussians in one op with a hand-written backward) and
+:func:`bin_gaussians` (tile binning), used by the rasterizer's "cpp" backend.
+
 Call :func:`available` before :func:`composite`: it builds/loads the kernel once per
 process and returns False, after ONE warning line, when that is impossible (no
 compiler, failed build); the caller then uses the torch compositor.
@@ -52,9 +56,11 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-__all__ = ["available", "load_error", "composite"]
+__all__ = ["available", "load_error", "composite", "project_and_shade", "bin_gaussians"]
 
-_SOURCES = (Path(__file__).parent / "_cpp" / "composite.cpp",)
+# project.cpp (fused projection + SH shading with its backward, and tile binning) is built
+# into the same library: one build, one load, one availability flag.
+_SOURCES = (Path(__file__).parent / "_cpp" / "composite.cpp", Path(__file__).parent / "_cpp" / "project.cpp")
 # The torch version is part of the name: a cached build is only valid for the torch it was built against.
 _NAME = "nimbus_composite_t" + "".join(ch if ch.isalnum() else "_" for ch in torch.__version__)
 # Portable flags (no -march=native: the cached library may be shared between machines; the
@@ -257,3 +263,82 @@ def composite(
         means2d.contiguous(), conics.contiguous(), colors.contiguous(), opacities.contiguous(),
         depths.contiguous(), background.contiguous(), isect_ids.contiguous(), tile_offsets.contiguous(),
         int(width), int(height), int(tile_size), absgrad)
+
+
+# --------------------------------------------------------------------------------------
+# Fused projection + SH shading, and tile binning (nimbus/render/_cpp/project.cpp)
+# --------------------------------------------------------------------------------------
+class _ProjectShade(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, log_scales, opacity_logits, sh_dc, sh_rest, viewmat, K, width, height,
+                sh_degree, proj):
+        args = (viewmat, K, width, height, sh_degree, proj.near, proj.far, proj.eps2d, proj.fov_clamp,
+                proj.radius_sigmas)
+        means2d, conics, colors, opacities, depths, radii = torch.ops.nimbus_project.project_forward(
+            means, quats, log_scales, opacity_logits, sh_dc, sh_rest, *args)
+        ctx.save_for_backward(means, quats, log_scales, opacity_logits, sh_dc, sh_rest, radii)
+        ctx.args = args
+        ctx.mark_non_differentiable(radii)
+        return means2d, conics, colors, opacities, depths, radii
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_means2d, g_conics, g_colors, g_opac, g_depths, _g_radii):
+        means, quats, log_scales, opacity_logits, sh_dc, sh_rest, radii = ctx.saved_tensors
+        n = means.shape[0]
+
+        def grad(g, *shape):  # an output that did not reach the loss has no gradient
+            return torch.zeros((n,) + shape, dtype=means.dtype) if g is None else g.contiguous()
+
+        grads = torch.ops.nimbus_project.project_backward(
+            means, quats, log_scales, opacity_logits, sh_dc, sh_rest, *ctx.args, radii,
+            grad(g_means2d, 2), grad(g_conics, 3), grad(g_colors, 3), grad(g_opac), grad(g_depths))
+        if ctx.args[4] == 0:  # as in the torch path, unused higher bands get no gradient at degree 0
+            grads = grads[:5] + (None,)
+        return tuple(grads) + (None,) * 6
+
+
+def project_and_shade(means: Tensor, quats: Tensor, log_scales: Tensor, opacity_logits: Tensor, sh_dc: Tensor,
+                      sh_rest: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int, sh_degree: int,
+                      config) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Projection (:func:`nimbus.render.projection.project_gaussians`) and colour/opacity
+    (:func:`nimbus.render.sh.sh_colors`, sigmoid) of N Gaussians in one compiled pass.
+
+    Parameters
+    ----------
+    means [N, 3], quats [N, 4], log_scales [N, 3], opacity_logits [N], sh_dc [N, 1, 3], sh_rest [N, K, 3]
+        Raw Gaussian parameters (one dtype, CPU); gradients flow to all of them.
+    viewmat : Tensor [4, 4]   world-to-camera (no gradient).
+    K : Tensor [3, 3]         intrinsics (no gradient).
+    width, height, sh_degree : int
+    config : ProjectionConfig
+
+    Returns
+    -------
+    means2d [N, 2], conics [N, 3], colors [N, 3], opacities [N], depths [N], radii [N] int32
+        Per Gaussian, zeros where culled by depth; colours and opacities are zero where
+        the radius is 0 (not drawn).  Same values as the torch path up to rounding
+        (the compiled maths runs in float64).
+    """
+    if not _state["ok"] and not available(warn=False):
+        raise RuntimeError(f"composite_cpp: the compiled kernel is unavailable ({load_error()})")
+    dtype = means.dtype
+    if dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"project_and_shade: float32 or float64 expected, got {dtype}")
+    tensors = [t.contiguous() for t in (means, quats, log_scales, opacity_logits, sh_dc, sh_rest)]
+    return _ProjectShade.apply(*tensors, viewmat.detach(), K.detach(), int(width), int(height), int(sh_degree),
+                               config)
+
+
+def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int,
+                  tile_size: int) -> tuple[Tensor, Tensor]:
+    """Compiled :func:`nimbus.render.binning.bin_gaussians` (same contract and output).
+
+    ``radii`` must be int32; a counting sort by tile of the depth-ordered Gaussians
+    replaces the sort of all intersections.
+    """
+    if not _state["ok"] and not available(warn=False):
+        raise RuntimeError(f"composite_cpp: the compiled kernel is unavailable ({load_error()})")
+    return torch.ops.nimbus_project.bin_gaussians(means2d.detach().contiguous(), radii.to(torch.int32).contiguous(),
+                                                  depths.detach().contiguous(), int(width), int(height),
+                                                  int(tile_size))

@@ -1,11 +1,15 @@
 """The public rasterizer: Gaussians + camera -> RGB, expected depth, alpha and per-Gaussian meta.
 
-Pipeline (torch and cpp backends): EWA projection with near/frustum culling
-(:mod:`~nimbus.render.projection`), SH colour of the visible Gaussians
+Pipeline of the torch backend (the reference path): EWA projection with near/frustum
+culling (:mod:`~nimbus.render.projection`), SH colour of the visible Gaussians
 (:mod:`~nimbus.render.sh`), tile binning (:mod:`~nimbus.render.binning`) and per-tile
-front-to-back compositing, either in torch (:mod:`~nimbus.render.composite_torch`) or
-in the C++ kernel ``nimbus.render.composite_cpp`` (same signature and rules).  The
-``gsplat`` backend hands the whole job to gsplat's CUDA rasterizer.
+front-to-back compositing (:mod:`~nimbus.render.composite_torch`).  The cpp backend runs
+the same mathematics compiled (``nimbus.render.composite_cpp``): projection + SH +
+sigmoid fused into one op with a hand-written backward, binning by a counting sort, and
+the C++ compositor, all over the N Gaussians (culled ones have radius 0), so a render
+is a handful of ops instead of ~100 small torch ops and their autograd records.  A
+camera whose ``viewmat``/``K`` need gradients takes the torch projection with the C++
+compositor.  The ``gsplat`` backend hands the whole job to gsplat's CUDA rasterizer.
 
 Everything runs on the device of the Gaussian parameters.
 """
@@ -138,6 +142,7 @@ def rasterize(
     background=None,
     backend: str = "torch",
     config: RasterConfig | None = None,
+    absgrad: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, dict]:
     """Render N Gaussians from one camera.
 
@@ -156,6 +161,9 @@ def rasterize(
         Compositor.  "auto" picks gsplat for CUDA tensors when gsplat imports, else the
         C++ kernel when it builds/loads (CPU tensors), else torch.
     config : RasterConfig, optional
+    absgrad : Tensor [N, 2], optional
+        Backend "cpp" only: the backward ADDS to it, per Gaussian and axis, the sum over
+        pixels of ``|d loss / d means2d|`` (gsplat's "absgrad" densification statistic).
 
     Returns
     -------
@@ -181,32 +189,64 @@ def rasterize(
     bg = torch.zeros(3, dtype=dtype, device=device) if background is None else \
         torch.as_tensor(background).to(dtype=dtype, device=device).reshape(3)
     backend = _resolve_backend(backend, device)
+    if absgrad is not None:
+        n = len(gaussians)
+        if backend != "cpp" or viewmat.requires_grad or K.requires_grad:
+            raise NimbusError("absgrad is only collected by backend 'cpp' with a fixed camera; "
+                              "use backend='cpp' or leave absgrad unset")
+        if tuple(absgrad.shape) != (n, 2) or absgrad.dtype != dtype:
+            raise NimbusError(f"absgrad must be a [{n}, 2] {dtype} tensor, got {tuple(absgrad.shape)} "
+                              f"{absgrad.dtype}")
 
     if backend == "gsplat":
         return _rasterize_gsplat(gaussians, viewmat, K, width, height, sh_degree, bg, cfg)
 
-    s = project_and_shade(gaussians, viewmat, K, width, height, sh_degree, cfg.projection)
-    isect_ids, tile_offsets = bin_gaussians(s.vis_means2d, s.vis_radii, s.vis_depths, width, height,
-                                            cfg.tile_size)
-    args = (s.vis_means2d, s.vis_conics, s.vis_colors, s.vis_opacities, s.vis_depths, isect_ids, tile_offsets,
-            width, height, cfg.tile_size, bg)
-    if backend == "cpp":
-        from nimbus.render import composite_cpp
-
-        rgb, depth, alpha = composite_cpp.composite(*args)
+    if backend == "cpp" and not (viewmat.requires_grad or K.requires_grad):
+        rgb, depth, alpha, means2d, radii, depths, n_isect = _rasterize_cpp(gaussians, viewmat, K, width, height,
+                                                                            sh_degree, bg, cfg, absgrad)
     else:
-        rgb, depth, alpha = composite_torch(*args, config=cfg.composite)
+        s = project_and_shade(gaussians, viewmat, K, width, height, sh_degree, cfg.projection)
+        isect_ids, tile_offsets = bin_gaussians(s.vis_means2d, s.vis_radii, s.vis_depths, width, height,
+                                                cfg.tile_size)
+        args = (s.vis_means2d, s.vis_conics, s.vis_colors, s.vis_opacities, s.vis_depths, isect_ids,
+                tile_offsets, width, height, cfg.tile_size, bg)
+        if backend == "cpp":  # a camera that needs gradients: torch projection, compiled compositing
+            from nimbus.render import composite_cpp
+
+            rgb, depth, alpha = composite_cpp.composite(*args)
+        else:
+            rgb, depth, alpha = composite_torch(*args, config=cfg.composite)
+        means2d, radii, depths, n_isect = s.means2d, s.radii, s.depths, int(isect_ids.numel())
     meta = {
-        "means2d": s.means2d,
-        "radii": s.radii,
-        "depths": s.depths,
-        "visible": s.radii > 0,
-        "num_intersections": int(isect_ids.numel()),
+        "means2d": means2d,
+        "radii": radii,
+        "depths": depths,
+        "visible": radii > 0,
+        "num_intersections": n_isect,
         "backend": backend,
         "width": width,
         "height": height,
     }
     return rgb, depth, alpha, meta
+
+
+def _rasterize_cpp(gaussians: Gaussians, viewmat, K, width, height, sh_degree, bg, cfg: RasterConfig, absgrad):
+    """The compiled pipeline: fused projection + shading, counting-sort binning, compositing.
+
+    Works on all N Gaussians (culled ones have radius 0 and zero opacity and are in no
+    tile list), so no gathers/scatters and their autograd records are needed.
+    """
+    from nimbus.render import composite_cpp
+
+    means2d, conics, colors, opacities, depths, radii = composite_cpp.project_and_shade(
+        gaussians.means, gaussians.quats, gaussians.log_scales, gaussians.opacity_logits, gaussians.sh_dc,
+        gaussians.sh_rest, viewmat, K, width, height, sh_degree, cfg.projection)
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    isect_ids, tile_offsets = composite_cpp.bin_gaussians(means2d, radii, depths, width, height, cfg.tile_size)
+    rgb, depth, alpha = composite_cpp.composite(means2d, conics, colors, opacities, depths, isect_ids, tile_offsets,
+                                                width, height, cfg.tile_size, bg, absgrad=absgrad)
+    return rgb, depth, alpha, means2d, radii, depths, int(isect_ids.numel())
 
 
 def means2d_grad(meta: dict) -> Tensor | None:
