@@ -10,6 +10,9 @@ from nimbus.cli_util import SubcommandTool
 COMMANDS = {
     "setup-weights": "benchmark.weights",
     "score": "benchmark.score",
+    "run": "benchmark.run",
+    "tables": "benchmark.tables_cmd",
+    "reference": "benchmark.reference",
 }
 
 TOOL = SubcommandTool(

@@ -1,0 +1,232 @@
+"""Grid runner, results store, executors (local processes, Dask) and resumption, on a tiny grid.
+
+Every cell is 3DGS with 5 iterations on the tiny built-in garden (16 views of 64x48),
+so a cell costs well under a second plus its process start-up.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import warnings
+
+import numpy as np
+import pytest
+
+from benchmark import grid
+from benchmark.cli import TOOL
+from benchmark.grid import (CellOptions, DaskExecutor, InlineExecutor, LocalExecutor, build_cells, data_dir,
+                            run_dir, run_grid)
+from benchmark.metrics import psnr
+from benchmark.store import ResultsStore, load_results
+from nimbus.cli_util import run_cli
+from nimbus.data.images import read_image
+from nimbus.errors import NimbusError
+from nimbus.utils.fs import sha256_file
+
+OVERRIDES = {"iterations": "5"}
+OPTIONS = CellOptions(lpips_net=None)  # LPIPS is tested in test_lpips / test_score; keep cells fast
+
+
+def cells(weathers=("H", "R")):
+    return build_cells(["garden"], list(weathers), ["3dgs"], ["tiny"], [0], "tiny", OVERRIDES)
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    """A root where the default local executor (fresh process per cell) ran two cells."""
+    root = tmp_path_factory.mktemp("bench")
+    outcome = run_grid(cells(), root, LocalExecutor(jobs=1), OPTIONS, progress=False, log=lambda s: None)
+    return root, outcome
+
+
+def copy_data(src, dst):
+    """A new root sharing the prepared scenes and degraded data (skips re-synthesis)."""
+    for sub in ("scenes", "data"):
+        shutil.copytree(src / sub, dst / sub)
+    return dst
+
+
+# --- store -----------------------------------------------------------------------------------
+def test_store_ignores_and_repairs_a_truncated_last_line(tmp_path):
+    store = ResultsStore(tmp_path)
+    store.append({"cell_id": "a", "status": "ok", "psnr": 20.0})
+    store.append({"cell_id": "b", "status": "error", "error": "boom"})
+    with open(store.path, "ab") as f:  # a crash in the middle of writing a record
+        f.write(b'{"cell_id": "c", "status": "o')
+    with pytest.warns(UserWarning, match="truncated"):
+        assert [r["cell_id"] for r in store.records()] == ["a", "b"]
+        assert store.finished() == {"a"}
+    with pytest.warns(UserWarning, match="truncated"):
+        store.append({"cell_id": "c", "status": "ok"})
+    lines = store.path.read_text().splitlines()
+    assert [json.loads(line)["cell_id"] for line in lines] == ["a", "b", "c"]
+    store.append({"cell_id": "b", "status": "ok", "psnr": 21.0})  # a retry supersedes the error
+    df = load_results(tmp_path)
+    assert sorted(df["cell_id"]) == ["a", "b", "c"]
+    assert df.set_index("cell_id").loc["b", "psnr"] == 21.0
+    assert len(load_results(tmp_path, latest=False)) == 4
+
+
+def test_store_rejects_a_corrupt_middle_line(tmp_path):
+    store = ResultsStore(tmp_path)
+    store.append({"cell_id": "a", "status": "ok"})
+    with open(store.path, "ab") as f:
+        f.write(b"not json\n")
+    store.append({"cell_id": "b", "status": "ok"})
+    with pytest.raises(NimbusError, match="line 2"):
+        store.records()
+
+
+# --- cells -----------------------------------------------------------------------------------
+def test_build_cells_order_ids_and_validation():
+    cs = build_cells(["garden", "street"], ["h", "R+H"], ["3dgs"], ["tiny"], [0, 1])
+    assert len(cs) == 8
+    assert cs[0].cell_id == "garden-tiny_H_3dgs_tiny_s0"
+    assert cs[2].weather == "H+R"  # canonical setting names
+    assert len({c.cell_id for c in cs}) == 8
+    assert build_cells(["garden"], ["H"], ["3dgs"], ["tiny"], [0], overrides={"iterations": "5"})[0].cell_id \
+        != cs[0].cell_id
+    for bad in (dict(scenes=["nowhere"]), dict(weathers=["fog+X"]), dict(methods=["nope"]),
+                dict(presets=["huge"]), dict(seeds=[-1]), dict(overrides={"no_such_field": "1"})):
+        args = dict(scenes=["garden"], weathers=["H"], methods=["3dgs"], presets=["tiny"], seeds=[0]) | bad
+        overrides = args.pop("overrides", None)
+        with pytest.raises(NimbusError):
+            build_cells(**args, overrides=overrides)
+
+
+def test_default_methods_skip_unregistered(monkeypatch):
+    monkeypatch.setattr(grid, "DEFAULT_METHODS", ("not-a-method", "3dgs"))
+    names, skipped = grid.resolve_methods(None)
+    assert names == ["3dgs"] and skipped == ["not-a-method"]
+    with pytest.raises(NimbusError, match="unknown method"):
+        grid.resolve_methods("3dgs,not-a-method")
+
+
+# --- end to end ----------------------------------------------------------------------------
+def test_local_run_records_and_scores_against_clean_views(finished):
+    root, outcome = finished
+    assert [r["status"] for r in outcome.ran] == ["ok", "ok"], [r.get("error") for r in outcome.ran]
+    df = load_results(root)
+    assert sorted(df["weather"]) == ["H", "R"]
+    for rec in df["record"]:
+        c = next(c for c in cells() if c.cell_id == rec["cell_id"])
+        data, run = data_dir(root, c), run_dir(root, c)
+        assert rec["input_sha256"] == sha256_file(data / "manifest.json")
+        assert [v["name"] for v in rec["per_view"]] == ["000.png", "008.png"]  # the LLFF test views
+        for v in rec["per_view"]:
+            render = run / "renders" / "test" / v["name"]
+            assert rec["output_sha256"][v["name"]] == sha256_file(render)
+            # scored against clean/, not against the degraded images the trainer saw
+            assert v["psnr"] == pytest.approx(psnr(read_image(render), read_image(data / "clean" / v["name"])))
+            assert v["psnr"] != pytest.approx(psnr(read_image(render), read_image(data / "images" / v["name"])))
+        assert rec["psnr"] == pytest.approx(np.mean([v["psnr"] for v in rec["per_view"]]))
+        assert rec["lpips"] is None and rec["ssim_protocol"] == "3dgs"
+        assert rec["iterations"] == 5 and rec["num_gaussians"] > 0
+        assert rec["num_params"] >= rec["num_gaussians"] * 11
+        assert len(rec["config_hash"]) == 64 and rec["config"]["iterations"] == 5
+        assert {"nimbus", "torch", "numpy"} <= rec["versions"].keys()
+        assert rec["peak_memory_mb"] > 0 and rec["render_fps"] > 0 and rec["started_at"] <= rec["finished_at"]
+        assert not list((root / "runs").glob("*.partial"))
+
+
+def test_rerun_skips_finished_cells(finished):
+    root, _ = finished
+    before = (root / "results.jsonl").read_bytes()
+    outcome = run_grid(cells(), root, InlineExecutor(), OPTIONS, progress=False, log=lambda s: None)
+    assert outcome.ran == [] and len(outcome.skipped) == 2
+    assert (root / "results.jsonl").read_bytes() == before
+
+
+def test_crash_mid_cell_resumes_without_corrupt_records(finished, tmp_path, monkeypatch):
+    root = copy_data(finished[0], tmp_path)
+    from nimbus.train.trainer import GaussianTrainer
+
+    first = cells()[0]
+    original = GaussianTrainer.after_step
+
+    def crash(self, it):  # the process is killed during the second cell's training
+        if self.out.name.startswith(cells()[1].cell_id) and it == 3:
+            raise KeyboardInterrupt
+        original(self, it)
+
+    monkeypatch.setattr(GaussianTrainer, "after_step", crash)
+    with pytest.raises(KeyboardInterrupt):
+        run_grid(cells(), root, InlineExecutor(), OPTIONS, progress=False, log=lambda s: None)
+    store = ResultsStore(root)
+    assert [r["cell_id"] for r in store.records()] == [first.cell_id]
+    assert (root / "runs" / (cells()[1].cell_id + grid.PARTIAL_SUFFIX)).is_dir()
+    assert not run_dir(root, cells()[1]).exists()
+    with open(store.path, "ab") as f:  # and a torn record from a crash while writing
+        f.write(b'{"cell_id": "' + cells()[1].cell_id.encode() + b'", "sta')
+
+    monkeypatch.setattr(GaussianTrainer, "after_step", original)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        outcome = run_grid(cells(), root, InlineExecutor(), OPTIONS, progress=False, log=lambda s: None)
+    assert [r["cell_id"] for r in outcome.ran] == [cells()[1].cell_id] and outcome.skipped == [first.cell_id]
+    recs = store.records()  # no warning now: the torn line was cut off before the append
+    assert [r["status"] for r in recs] == ["ok", "ok"]
+    assert run_dir(root, cells()[1]).is_dir() and not list((root / "runs").glob("*.partial"))
+
+
+def test_failed_cell_is_recorded_and_retried(finished, tmp_path, monkeypatch):
+    root = copy_data(finished[0], tmp_path)
+    from nimbus.train.trainer import GaussianTrainer
+
+    def fail(self):
+        raise NimbusError("every Gaussian was pruned")
+
+    monkeypatch.setattr(GaussianTrainer, "train", fail)
+    outcome = run_grid(cells(["H"]), root, InlineExecutor(), OPTIONS, progress=False, log=lambda s: None)
+    assert outcome.failed and outcome.failed[0]["error"] == "every Gaussian was pruned"
+    assert ResultsStore(root).finished() == set()
+    monkeypatch.undo()
+    outcome = run_grid(cells(["H"]), root, InlineExecutor(), OPTIONS, progress=False, log=lambda s: None)
+    assert [r["status"] for r in outcome.ran] == ["ok"]
+
+
+def test_dask_executor_on_a_local_cluster(finished, tmp_path):
+    from distributed import Client, LocalCluster
+
+    root = copy_data(finished[0], tmp_path)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        outcome = run_grid(cells(["H"]), root, DaskExecutor(client), OPTIONS, progress=False, log=lambda s: None)
+    assert [r["status"] for r in outcome.ran] == ["ok"], outcome.ran[0].get("error")
+    df = load_results(root)
+    assert list(df["cell_id"]) == [cells(["H"])[0].cell_id]
+    # same data, config and seed as the local run: the same figures
+    local = load_results(finished[0]).set_index("cell_id")
+    assert df["psnr"].iloc[0] == pytest.approx(local.loc[df["cell_id"].iloc[0], "psnr"], abs=1e-6)
+    with pytest.raises(NimbusError, match="--scheduler"):
+        DaskExecutor(None)
+
+
+# --- command line ------------------------------------------------------------------------
+def test_cli_resumes_and_prints_the_table(finished, capsys):
+    root, _ = finished
+    rc = run_cli(TOOL.run, ["run", "--scenes", "garden", "--weathers", "H,R", "--methods", "3dgs", "--set",
+                            "iterations=5", "--lpips", "none", "--root", str(root), "--quiet"])
+    out, err = capsys.readouterr()
+    assert rc == 0, err
+    assert "skipping 2 finished cell(s)" in err
+    lines = out.splitlines()
+    assert lines[0].split()[:3] == ["weather", "method", "cells"]
+    assert lines[1].split()[:3] == ["H", "3dgs", "1"] and lines[2].split()[:3] == ["R", "3dgs", "1"]
+    assert "SSIM protocol: 3dgs" in out
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["run", "--weathers", "fog,X"], "weather"),
+    (["run", "--methods", "nope"], "unknown method"),
+    (["run", "--seeds", "a"], "--seeds"),
+    (["run", "--executor", "dask"], "--scheduler"),
+    (["run", "--jobs", "0"], "--jobs"),
+    (["run", "--set", "nofield=1", "--methods", "3dgs"], "unknown setting"),
+])
+def test_cli_bad_input_is_one_clear_error(argv, message, tmp_path, capsys):
+    assert run_cli(TOOL.run, argv + ["--root", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err
+    assert "error:" in err and message in err and "Traceback" not in err
+    assert not (tmp_path / "r").exists()

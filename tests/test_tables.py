@@ -1,0 +1,221 @@
+"""Comparison tables from a results store: LaTeX structure, Markdown, CSV, best / second-best marks."""
+
+from __future__ import annotations
+
+import csv
+import io
+import re
+
+import pytest
+
+from benchmark.cli import TOOL
+from benchmark.store import ResultsStore, load_results
+from benchmark.tables import comparison_tables, rank_marks, summary_table, to_csv, to_latex, to_markdown
+from nimbus.cli_util import run_cli
+from nimbus.errors import NimbusError
+
+# (method, scene, psnr, ssim, lpips): in haze, "nimbus" is best everywhere, "3dgs" second in PSNR,
+# "restore+3dgs" second in SSIM and LPIPS; "nimbus" misses street in rain (no Average there).
+VALUES = {
+    "H": [("nimbus", "garden", 21.0, 0.70, 0.20), ("3dgs", "garden", 18.0, 0.50, 0.40),
+          ("restore+3dgs", "garden", 17.0, 0.60, 0.30),
+          ("nimbus", "street", 23.0, 0.80, 0.10), ("3dgs", "street", 20.0, 0.60, 0.30),
+          ("restore+3dgs", "street", 19.0, 0.70, 0.20)],
+    "R": [("nimbus", "garden", 25.0, 0.8, 0.2), ("3dgs", "garden", 24.0, 0.7, 0.3),
+          ("3dgs", "street", 22.0, 0.6, 0.3)],
+}
+
+
+def records(ssim_protocol="3dgs", seeds=(0,)):
+    out = []
+    for weather, rows in VALUES.items():
+        for method, scene, p, s, lp in rows:
+            for seed in seeds:
+                out.append({"cell_id": f"{scene}-tiny_{weather}_{method}_tiny_s{seed}", "scene": scene,
+                            "size": "tiny", "weather": weather, "method": method, "preset": "tiny", "seed": seed,
+                            "status": "ok", "psnr": p + seed, "ssim": s, "lpips": lp,
+                            "ssim_protocol": ssim_protocol, "lpips_net": "vgg", "train_time_s": 1.0})
+    out.append({"cell_id": "garden-tiny_S_3dgs_tiny_s0", "scene": "garden", "size": "tiny", "weather": "S",
+                "method": "3dgs", "preset": "tiny", "seed": 0, "status": "error", "error": "boom"})
+    return out
+
+
+@pytest.fixture
+def store_root(tmp_path):
+    store = ResultsStore(tmp_path)
+    for r in records():
+        store.append(r)
+    return tmp_path
+
+
+@pytest.fixture
+def tables(store_root):
+    return {t.weather: t for t in comparison_tables(load_results(store_root), ["nimbus", "3dgs"])}
+
+
+def test_rank_marks():
+    assert rank_marks([1.0, 3.0, 2.0], True, 2) == [None, 1, 2]
+    assert rank_marks([0.1, 0.3, 0.2], False, 3) == [1, None, 2]
+    assert rank_marks([2.0, 1.0], True, 2) == [1, None]  # no "second best" of two
+    assert rank_marks([2.001, 2.0, 1.0], True, 2) == [1, 1, 2]  # equal as printed: both best
+    assert rank_marks([None, 2.0, 1.0, float("nan")], True, 2) == [None, 1, None, None]
+    assert rank_marks([5.0], True, 2) == [None]
+
+
+def test_tables_from_store(tables):
+    assert list(tables) == ["H", "R"]  # error-only setting S has no table
+    h = tables["H"]
+    assert h.methods == ["nimbus", "3dgs", "restore+3dgs"] and h.scenes == ["garden", "street"]
+    assert h.values[("nimbus", "Average", "psnr")] == pytest.approx(22.0)
+    assert h.marks("Average", "psnr") == [1, 2, None]
+    assert h.marks("garden", "ssim") == [1, None, 2]
+    assert h.marks("street", "lpips") == [1, None, 2]
+    r = tables["R"]
+    assert r.values[("nimbus", "Average", "psnr")] is None  # a missing scene leaves the average empty
+    assert r.values[("3dgs", "Average", "psnr")] == pytest.approx(23.0)
+
+
+def _latex_rows(tex: str) -> list[str]:
+    body = tex.split(r"\midrule", 1)[1].split(r"\bottomrule", 1)[0]
+    return [row for row in body.split(r"\\") if row.strip()]
+
+
+def test_latex_structure_and_marks(tables):
+    tex = to_latex(tables["H"])
+    for env in ("table*", "tabular"):
+        assert tex.count(rf"\begin{{{env}}}") == tex.count(rf"\end{{{env}}}") == 1
+    assert tex.count("{") == tex.count("}")
+    assert tex.index(r"\toprule") < tex.index(r"\midrule") < tex.index(r"\bottomrule")
+    spec = re.search(r"\\begin\{tabular\}\{([^}]*)\}", tex).group(1)
+    ncols = len(spec.replace(" ", ""))
+    assert ncols == 1 + 3 * 3  # method + (garden, street, Average) x 3 metrics
+    header = tex.split(r"\toprule", 1)[1].split(r"\midrule", 1)[0]
+    spans = [int(n) for n in re.findall(r"\\multicolumn\{(\d+)\}", header)]
+    assert 1 + sum(spans) == ncols
+    assert re.findall(r"\\cmidrule\(lr\)\{(\d+)-(\d+)\}", header) == [("2", "4"), ("5", "7"), ("8", "10")]
+    assert header.count(r"PSNR$\uparrow$") == 3 and header.count(r"LPIPS$\downarrow$") == 3
+    rows = _latex_rows(tex)
+    assert len(rows) == 3
+    for row in rows:
+        assert row.count("&") == ncols - 1
+    nimbus, gs, restore = (re.split(r"\s*&\s*", row.strip()) for row in rows)
+    assert nimbus[0] == "nimbus" and restore[0] == "restore+3dgs"
+    assert all(c.startswith(r"\first{") for c in nimbus[1:])
+    assert gs[1] == r"\second{18.00}" and gs[2] == "0.500" and restore[2] == r"\second{0.600}"
+    assert r"\providecommand{\first}[1]{\cellcolor{red!25}{#1}}" in tex
+    assert "SSIM protocol: 3dgs" in tex and "lpips-vgg-v0.1" in tex
+
+
+def test_latex_missing_and_escaped(tables):
+    t = tables["R"]
+    t.methods[0] = "nimbus_v2"
+    t.values.update({("nimbus_v2", k[1], k[2]): v for k, v in t.values.items() if k[0] == "nimbus"})
+    tex = to_latex(t)
+    row = _latex_rows(tex)[0].strip()
+    assert row.startswith(r"nimbus\_v2")
+    assert row.split("&")[-1].strip() == "--"  # no Average LPIPS for a method missing a scene
+    assert row.count("&") == 9
+
+
+def test_markdown_tables(tables):
+    md = to_markdown(tables["H"])
+    rows = [line for line in md.splitlines() if line.startswith("|")]
+    assert {line.count("|") for line in rows} == {10 + 1}  # method + 3 groups x 3 metrics
+    assert re.fullmatch(r"\|(:?-+:?\|)+", rows[1])
+    cells = [c.strip() for c in rows[2].strip("|").split("|")]
+    assert cells[0] == "nimbus" and all(c.startswith("**") for c in cells[1:])
+    gs = [c.strip() for c in rows[3].strip("|").split("|")]
+    assert gs[1] == "_18.00_" and gs[2] == "0.500"
+    assert "SSIM protocol: 3dgs" in md and "LPIPS: lpips-vgg-v0.1" in md
+
+
+def test_csv(tables):
+    rows = list(csv.DictReader(io.StringIO(to_csv(list(tables.values())))))
+    assert len(rows) == 3 * 3 + 2 * 3  # (methods x groups) per weather
+    best = [r for r in rows if r["weather"] == "H" and r["scene"] == "Average" and r["psnr_mark"] == "best"]
+    assert [r["method"] for r in best] == ["nimbus"] and float(best[0]["psnr"]) == pytest.approx(22.0)
+    assert {r["ssim_protocol"] for r in rows} == {"3dgs"} and {r["lpips"] for r in rows} == {"lpips-vgg-v0.1"}
+
+
+def test_seeds_are_averaged_and_mixed_protocols_refused(tmp_path):
+    store = ResultsStore(tmp_path / "a")
+    for r in records(seeds=(0, 1)):
+        store.append(r)
+    (h, _) = comparison_tables(load_results(tmp_path / "a"))
+    assert h.values[("nimbus", "garden", "psnr")] == pytest.approx(21.5)
+    assert h.seeds[("nimbus", "garden")] == 2
+    store = ResultsStore(tmp_path / "b")
+    for r in records() + [dict(records("dmpix")[0], cell_id="other")]:
+        store.append(r)
+    with pytest.raises(NimbusError, match="mixes SSIM protocols"):
+        comparison_tables(load_results(tmp_path / "b"))
+
+
+def test_summary_table_counts_errors(store_root):
+    text = summary_table(load_results(store_root), ["nimbus", "3dgs"])
+    lines = text.splitlines()
+    s_row = next(line for line in lines if line.startswith("S "))
+    assert s_row.split()[-1] == "1" and "n/a" in s_row
+    h_rows = [line.split() for line in lines if line.startswith("H ")]
+    assert [r[1] for r in h_rows] == ["nimbus", "3dgs", "restore+3dgs"]
+    assert float(h_rows[0][3]) == pytest.approx(22.0)
+
+
+def test_tables_command(store_root, tmp_path, capsys):
+    out = tmp_path / "tables"
+    assert run_cli(TOOL.run, ["tables", "--root", str(store_root), "--out", str(out),
+                              "--parquet", str(tmp_path / "r.parquet")]) == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["comparisons.csv", "comparisons.md", "paper_H.md", "paper_H.tex", "paper_R.md", "paper_R.tex",
+                     "weather_H.md", "weather_H.tex", "weather_R.md", "weather_R.tex"]
+    md = (out / "comparisons.md").read_text()
+    assert md.index("### haze (H)") < md.index("### the paper's reported numbers on the paper's data (tab:dehaze")
+    paper_tex = (out / "paper_H.tex").read_text()
+    assert "NOT results of this benchmark" in paper_tex and r"\first{21.84}" in paper_tex
+    rows = _latex_rows(paper_tex)
+    assert len(rows) == 4 and all(r.count("&") == 15 for r in rows)  # 4 scenes + Average
+    import pandas as pd
+
+    assert len(pd.read_parquet(tmp_path / "r.parquet")) == len(records())
+    assert run_cli(TOOL.run, ["tables", "--root", str(tmp_path / "none"), "--out", str(out)]) == 2
+    assert "nimbus-bench run" in capsys.readouterr().err
+
+
+def test_reference_check_and_update(store_root, tmp_path, capsys):
+    ref = tmp_path / "ref.json"
+    base = ["reference", "--root", str(store_root), "--reference", str(ref)]
+    assert run_cli(TOOL.run, ["reference", "check"] + base[1:]) == 2  # no reference yet: a clear error
+    store = ResultsStore(store_root)
+    for r in records():  # the cells need input hashes and config hashes, as real records have
+        if r["status"] == "ok":
+            store.append(dict(r, input_sha256="a" * 64, config_hash="c" * 64))
+    assert run_cli(TOOL.run, ["reference", "update"] + base[1:]) == 0
+    assert run_cli(TOOL.run, ["reference", "check"] + base[1:]) == 0
+    worse = records()[0]
+    store.append(dict(worse, psnr=worse["psnr"] - 1.0, input_sha256="b" * 64, config_hash="c" * 64))
+    capsys.readouterr()
+    assert run_cli(TOOL.run, ["reference", "check"] + base[1:]) == 1
+    out = capsys.readouterr().out
+    assert f"{worse['cell_id']}: the synthesised input changed" in out and "psnr" in out
+
+
+def test_paper_reference_tables_and_their_marks():
+    """The transcribed paper tables are complete, and our best / second-best rule reproduces the paper's marks."""
+    from pathlib import Path
+
+    from benchmark.tables import DECIMALS, HIGHER_IS_BETTER
+
+    folder = Path(__file__).resolve().parents[1] / "tables" / "reference"
+    labels = {}
+    for f in sorted(folder.glob("*.csv")):
+        rows = list(csv.DictReader(f.open()))
+        labels[rows[0]["table_label"]] = rows[0]["weather"]
+        by_scene: dict[str, list[dict]] = {}
+        for r in rows:
+            by_scene.setdefault(r["scene"], []).append(r)
+        assert list(by_scene)[-1] == "Average" and len({len(v) for v in by_scene.values()}) == 1
+        for scene_rows in by_scene.values():
+            for k in ("psnr", "ssim", "lpips"):
+                marks = rank_marks([float(r[k]) for r in scene_rows], HIGHER_IS_BETTER[k], DECIMALS[k])
+                assert [{1: "best", 2: "second"}.get(m, "") for m in marks] == [r[f"{k}_mark"] for r in scene_rows]
+    assert labels == {"tab:dehaze": "H", "tab:derain": "R", "tab:desnow": "S", "tab:mix": "H+R+S"}
