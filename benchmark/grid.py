@@ -54,8 +54,6 @@ SYNTH_PROTOCOL = "onerestore"
 DEFAULT_METHODS = ("nimbus", "3dgs")
 DEFAULT_PRESET = "tiny"
 DEFAULT_SIZE = "tiny"
-#: Modules that register more methods when imported (NimbusGS and its variants).
-METHOD_MODULES = ("nimbus.nimbusgs.methods",)
 PARTIAL_SUFFIX = ".partial"
 CELL_FORMAT = "nimbus-bench-cell/1"
 #: Parameters per Gaussian besides its SH colour: mean 3 + quaternion 4 + log-scale 3 + opacity 1.
@@ -114,19 +112,6 @@ class Cell:
                    tuple(sorted(d.get("overrides", {}).items())))
 
 
-def load_method_modules() -> list[str]:
-    """Import the modules that register extra methods; returns a message per module that failed."""
-    import importlib
-
-    problems = []
-    for mod in METHOD_MODULES:
-        try:
-            importlib.import_module(mod)
-        except Exception as e:  # a method still in development must not take the harness down
-            problems.append(f"{mod} could not be imported ({e.__class__.__name__}: {e})")
-    return problems
-
-
 def resolve_methods(spec: str | None) -> tuple[list[str], list[str]]:
     """Method names to run and the default ones skipped because they are not registered.
 
@@ -135,7 +120,6 @@ def resolve_methods(spec: str | None) -> tuple[list[str], list[str]]:
     """
     from nimbus.train.methods import METHODS, get_method
 
-    load_method_modules()
     if spec is None or spec.strip() == "default":
         names = [m for m in DEFAULT_METHODS if m in METHODS]
         return names, [m for m in DEFAULT_METHODS if m not in METHODS]
@@ -345,7 +329,6 @@ def _run_cell(cell: Cell, root: Path, options: CellOptions) -> dict:
 
     if options.threads:
         torch.set_num_threads(int(options.threads))
-    load_method_modules()  # a fresh worker process has only the built-in registry
     method = get_method(cell.method)
     config = make_config(method, cell.preset, dict(cell.overrides))
     data = data_dir(root, cell)

@@ -56,3 +56,8 @@ def get_method(name: str) -> Method:
         return METHODS[name]
     except KeyError:
         raise NimbusError(f"unknown method {name!r}; choose one of: {', '.join(sorted(METHODS))}") from None
+
+
+# NimbusGS and its paper variants register themselves; imported last because they
+# build on Method and register above.
+import nimbus.nimbusgs.methods  # noqa: E402,F401

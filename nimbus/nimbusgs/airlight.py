@@ -1,0 +1,106 @@
+"""Airlight A: the colour that the medium scatters into each ray (CSM's P = sum_i T_i (1 - e^-tau_i) A).
+
+Three variants share ``module(dirs [P, 3], transmission [P], descriptor [D]) -> A [P, 3]``
+(values in (0, 1)):
+
+* :class:`NetworkAirlight` (paper default): a small MLP conditioned on the degraded input
+  and on T.  The input enters through a per-view *global* descriptor (the dark-channel
+  airlight estimate of He et al. and the mean colour, :func:`view_descriptor`), not its
+  pixels: a per-pixel copy of I_in would let ``P`` reproduce the input with T -> 0 and
+  leave the clean render unconstrained.  T enters per pixel (detached: it conditions
+  the colour, it is not a path for the extinction's gradient).  The output starts at the
+  view's dark-channel estimate (zero-initialised last layer around its logit).
+* :class:`ConstantAirlight`: one RGB colour for the scene.
+* :class:`SHAirlight`: SH of the ray direction (the authors' released code).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from nimbus.render.sh import num_sh_bases, sh_basis
+
+#: Length of :func:`view_descriptor`.
+DESCRIPTOR_SIZE = 6
+#: Fraction of the brightest dark-channel pixels whose colour estimates the airlight (He et al.: 0.1 %).
+AIRLIGHT_TOP_FRACTION = 0.001
+#: Bounds of the initial airlight estimate, so its logit is finite.
+_A_MIN, _A_MAX = 0.02, 0.98
+
+
+def dark_channel_hard(image: Tensor, patch: int) -> Tensor:
+    """min over colour and over a ``patch`` x ``patch`` window: ``[H, W, 3] -> [H, W]``."""
+    x = image.min(dim=-1).values[None, None]
+    pad = patch // 2
+    return -F.max_pool2d(-x, patch, stride=1, padding=pad)[0, 0, : image.shape[0], : image.shape[1]]
+
+
+def estimate_airlight(image: Tensor, patch: int) -> Tensor:
+    """He et al.'s airlight: the mean colour of the input at the brightest 0.1 % of its dark channel ``[3]``."""
+    dark = dark_channel_hard(image, patch).reshape(-1)
+    k = max(1, int(round(dark.numel() * AIRLIGHT_TOP_FRACTION)))
+    idx = torch.topk(dark, k).indices
+    return image.reshape(-1, 3)[idx].mean(0).clamp(_A_MIN, _A_MAX)
+
+
+def view_descriptor(image: Tensor, patch: int) -> Tensor:
+    """Global descriptor of a degraded view ``[6]``: dark-channel airlight estimate (RGB) and mean colour (RGB)."""
+    return torch.cat([estimate_airlight(image, patch), image.reshape(-1, 3).mean(0)])
+
+
+def _logit(p: Tensor) -> Tensor:
+    p = p.clamp(_A_MIN, _A_MAX)
+    return torch.log(p) - torch.log1p(-p)
+
+
+class ConstantAirlight(nn.Module):
+    """A = sigmoid(c), one colour; ``init`` [3] in (0, 1)."""
+
+    def __init__(self, init: Tensor) -> None:
+        super().__init__()
+        self.logit = nn.Parameter(_logit(init.detach().float()))
+
+    def forward(self, dirs: Tensor, transmission: Tensor, descriptor: Tensor) -> Tensor:
+        return torch.sigmoid(self.logit).expand(dirs.shape[0], 3)
+
+
+class SHAirlight(nn.Module):
+    """A = sigmoid(logit(init) + SH_degree(d) . c), c zero-initialised."""
+
+    def __init__(self, init: Tensor, degree: int) -> None:
+        super().__init__()
+        self.degree = int(degree)
+        self.base = nn.Parameter(_logit(init.detach().float()))
+        self.coeffs = nn.Parameter(torch.zeros(num_sh_bases(degree), 3))
+
+    def forward(self, dirs: Tensor, transmission: Tensor, descriptor: Tensor) -> Tensor:
+        return torch.sigmoid(self.base + sh_basis(self.degree, dirs) @ self.coeffs)
+
+
+class NetworkAirlight(nn.Module):
+    """A = sigmoid(logit(A_dark(view)) + MLP(d, T, descriptor)); see the module docstring."""
+
+    def __init__(self, hidden: int) -> None:
+        super().__init__()
+        self.mlp = nn.Sequential(nn.Linear(3 + 1 + DESCRIPTOR_SIZE, hidden), nn.SiLU(), nn.Linear(hidden, hidden),
+                                 nn.SiLU(), nn.Linear(hidden, 3))
+        nn.init.zeros_(self.mlp[-1].weight)
+        nn.init.zeros_(self.mlp[-1].bias)
+
+    def forward(self, dirs: Tensor, transmission: Tensor, descriptor: Tensor) -> Tensor:
+        n = dirs.shape[0]
+        x = torch.cat([dirs, transmission.detach()[:, None], descriptor.expand(n, DESCRIPTOR_SIZE)], dim=1)
+        return torch.sigmoid(_logit(descriptor[:3]) + self.mlp(x))
+
+
+def make_airlight(kind: str, init: Tensor, hidden: int, sh_degree: int) -> nn.Module:
+    """The airlight module named ``kind`` (``network``, ``constant``, ``sh``); ``init`` [3] seeds the fixed ones."""
+    if kind == "network":
+        return NetworkAirlight(hidden)
+    if kind == "constant":
+        return ConstantAirlight(init)
+    if kind == "sh":
+        return SHAirlight(init, sh_degree)
+    raise ValueError(f"unknown airlight {kind!r}")

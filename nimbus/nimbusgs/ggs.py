@@ -1,0 +1,127 @@
+"""Geometry-Guided Gradient Scaling (GGS): per-Gaussian weights from depth, projected radius and error.
+
+Paper (Method, GGS)::
+
+    d_norm_i = (d_i - d_min) / (d_max - d_min)
+    e_i      = bilinear(||I_deg - I_in||_1, (u_i, v_i))
+    e_norm_i = (e_i - median(e)) / median(|e - median(e)|)
+    w_i      = d_norm_i * (r_i / r_0) * sigmoid(e_norm_i)
+    grad theta_i <- sg(w_i / mean(w)) * grad theta_i
+
+The statistics run over the Gaussians visible in the current view (invisible ones
+have no gradient to scale; they get w = 1).  ``e_i`` samples the per-pixel L1 error
+(summed over RGB) at the Gaussian's projected centre, as the paper's equation says.
+Degenerate cases: ``d_max = d_min`` gives d_norm = 1; MAD = 0 gives e_norm = 0
+(sigmoid 1/2); a zero mean weight (no visible Gaussian) leaves every gradient as it
+is.  The mean-normalised weight is clipped to ``clip`` (the released code's guard).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+_EPS = 1e-12
+
+
+@dataclass(frozen=True)
+class GGSFactors:
+    """Which factors of w_i are used, the reference radius r_0 (pixels) and the clip of w_i / mean(w)."""
+
+    depth: bool = True
+    radius: bool = True
+    error: bool = True
+    r0: float = 3.0
+    clip: tuple[float, float] = (0.5, 3.0)
+
+
+def sample_error(error_map: Tensor, means2d: Tensor) -> Tensor:
+    """Bilinear samples ``[M]`` of ``error_map`` [H, W] at pixel positions ``means2d`` [M, 2] (x, y).
+
+    Positions use the project's pixel convention (pixel (u, v) spans [u, u + 1) x [v, v + 1),
+    centre at +0.5), i.e. grid_sample's ``align_corners=False`` frame; outside the image
+    the border value is used.
+    """
+    h, w = error_map.shape
+    if means2d.shape[0] == 0:
+        return error_map.new_zeros(0)
+    gx = means2d[:, 0] / w * 2 - 1
+    gy = means2d[:, 1] / h * 2 - 1
+    grid = torch.stack([gx, gy], dim=-1).reshape(1, 1, -1, 2).to(error_map.dtype)
+    return F.grid_sample(error_map[None, None], grid, mode="bilinear", padding_mode="border",
+                         align_corners=False).reshape(-1)
+
+
+def robust_normalise(e: Tensor) -> Tensor:
+    """(e - median) / MAD; all zeros when the MAD is zero (or e is empty)."""
+    if e.numel() == 0:
+        return e
+    med = e.median()
+    mad = (e - med).abs().median()
+    if not bool(mad > _EPS):
+        return torch.zeros_like(e)
+    return (e - med) / mad
+
+
+def ggs_weights(depths: Tensor, radii: Tensor, means2d: Tensor, error_map: Tensor, visible: Tensor,
+                factors: GGSFactors = GGSFactors()) -> tuple[Tensor, dict]:
+    """Mean-normalised GGS weights ``[N]`` (1 for invisible Gaussians) and summary statistics.
+
+    Parameters
+    ----------
+    depths : Tensor [N]
+        Camera z of each Gaussian centre.
+    radii : Tensor [N]
+        Projected radius in pixels (0 = not visible).
+    means2d : Tensor [N, 2]
+        Projected centres, pixels.
+    error_map : Tensor [H, W]
+        ``||I_deg - I_in||_1`` per pixel (sum over RGB).
+    visible : Tensor [N] bool
+    factors : GGSFactors
+    """
+    n = depths.shape[0]
+    w = torch.ones(n, dtype=torch.float32, device=depths.device)
+    vis = visible.nonzero().squeeze(1)
+    info = {"visible": int(vis.numel())}
+    if vis.numel() == 0:
+        return w, info
+    d = depths[vis].detach().float()
+    r = radii[vis].detach().float()
+    wv = torch.ones_like(d)
+    if factors.depth:
+        span = d.max() - d.min()
+        wv = wv * ((d - d.min()) / span if bool(span > _EPS) else torch.ones_like(d))
+    if factors.radius:
+        wv = wv * (r / factors.r0)
+    if factors.error:
+        e = sample_error(error_map.detach().float(), means2d[vis].detach().float())
+        wv = wv * torch.sigmoid(robust_normalise(e))
+    wv = torch.nan_to_num(wv, nan=0.0, posinf=0.0, neginf=0.0)
+    mean = wv.mean()
+    if not bool(mean > _EPS):
+        info["degenerate"] = True
+        return w, info
+    wv = (wv / mean).clamp(factors.clip[0], factors.clip[1])
+    w[vis] = wv
+    info.update(w_min=float(wv.min()), w_max=float(wv.max()), w_mean=float(wv.mean()))
+    return w, info
+
+
+def scale_gradients(tensors: dict[str, Tensor], weights: Tensor) -> None:
+    """Multiply the ``.grad`` rows of every per-Gaussian tensor (first dim N) by ``weights`` [N] (in place)."""
+    n = weights.shape[0]
+    for t in tensors.values():
+        g = t.grad
+        if g is None or g.shape[0] != n:
+            continue
+        g.mul_(weights.to(g.dtype).reshape((n,) + (1,) * (g.dim() - 1)))
+
+
+def ndc_grad_norm(means2d_grad: Tensor, width: int, height: int) -> Tensor:
+    """|d loss / d mean2d| in NDC units ``[N]``, the statistic the 3DGS densification accumulates."""
+    g = means2d_grad.detach()
+    return torch.stack([g[:, 0] * width * 0.5, g[:, 1] * height * 0.5], dim=-1).norm(dim=-1)

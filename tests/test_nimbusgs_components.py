@@ -1,0 +1,330 @@
+"""NimbusGS building blocks against closed forms: scattering, airlight, PLM, GGS, losses, auto evidence, config."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from nimbus.data.camera import Camera
+from nimbus.errors import NimbusError
+from nimbus.nimbusgs.airlight import (ConstantAirlight, NetworkAirlight, SHAirlight, estimate_airlight,
+                                      view_descriptor)
+from nimbus.nimbusgs.auto import haze_evidence, particle_evidence, residual_tail_counts
+from nimbus.nimbusgs.config import NimbusConfig, paper_m_init, parse_components, preset
+from nimbus.nimbusgs.ggs import GGSFactors, ggs_weights, robust_normalise, sample_error, scale_gradients
+from nimbus.nimbusgs.losses import dcp_loss, soft_dark_channel
+from nimbus.nimbusgs.particulate import ResidualStore, extract_residual, is_refresh_step
+from nimbus.nimbusgs.restore import classical_restore
+from nimbus.nimbusgs.scattering import (Box, ExtinctionGrid, UniformExtinction, camera_rays, density_scale_for,
+                                        gaussian_extinction_map, march, march_interval, ray_box_interval)
+
+
+def _camera(width=16, height=12, eye=(0.0, 0.0, 0.0), target=(0.0, 0.0, 1.0), up=(0.0, -1.0, 0.0)):
+    return Camera.look_at(eye, target, up, width, height, fov_x_deg=60)
+
+
+def _homogeneous_grid(box, beta, resolution=4):
+    grid = ExtinctionGrid(box, resolution, 0.0, 1.0)
+    with torch.no_grad():
+        grid.features.fill_(0.0)
+        grid.log_scale.fill_(math.log(beta / math.log(2.0)))  # softplus(0) = ln 2
+    return grid
+
+
+def _march_view(field, cam, z, alpha=1.0, samples=32, near=0.01, alpha_min=0.5, grad=False):
+    rays = camera_rays(cam)
+    depth = torch.full((cam.height, cam.width), z * alpha)
+    a = torch.full((cam.height, cam.width), alpha)
+    ts, te = march_interval(rays, field.lo, field.hi, depth, a, near, alpha_min)
+    with torch.set_grad_enabled(grad):
+        return march(field, rays.origin, rays.dirs, ts, te, samples), rays, ts, te
+
+
+# --- CSM ----------------------------------------------------------------------------------
+def test_homogeneous_grid_gives_beer_lambert_and_airlight_closed_form():
+    beta, z, near = 0.3, 4.0, 0.01
+    cam = _camera()
+    grid = _homogeneous_grid(Box((-50.0,) * 3, (50.0,) * 3), beta)
+    res, rays, ts, te = _march_view(grid, cam, z, near=near)
+    distance = z * rays.z_to_distance - near
+    torch.testing.assert_close(te - ts, distance)
+    torch.testing.assert_close(res.transmission, torch.exp(-beta * distance), rtol=1e-5, atol=1e-6)
+    airlight = torch.tensor([0.7, 0.8, 0.9])
+    P = res.scatter[:, None] * airlight
+    torch.testing.assert_close(P, airlight * (1 - res.transmission[:, None]), rtol=1e-5, atol=1e-6)
+    # Uniform extinction is the same closed form.
+    uni = UniformExtinction(Box((-50.0,) * 3, (50.0,) * 3), beta / math.log(2.0))
+    res_u, *_ = _march_view(uni, cam, z, near=near)
+    torch.testing.assert_close(res_u.transmission, res.transmission, rtol=1e-5, atol=1e-6)
+
+
+def test_rays_point_into_the_scene():
+    """A medium only in front of the camera attenuates; only behind it does not (the released code's bug)."""
+    cam = _camera()  # at the origin, looking along +z
+    front = _homogeneous_grid(Box((-20.0, -20.0, 2.0), (20.0, 20.0, 6.0)), 0.5)
+    behind = _homogeneous_grid(Box((-20.0, -20.0, -6.0), (20.0, 20.0, -2.0)), 0.5)
+    res_front, *_ = _march_view(front, cam, z=10.0)
+    res_behind, *_ = _march_view(behind, cam, z=10.0)
+    assert float(res_front.transmission.max()) < 0.2
+    assert torch.all(res_behind.transmission == 1.0) and torch.all(res_behind.scatter == 0.0)
+    # The same with a posed camera looking at the medium from the side, and away from it.
+    box = Box((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+    medium = _homogeneous_grid(box, 2.0)
+    toward = _camera(eye=(0.0, -6.0, 0.5), target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0))
+    away = _camera(eye=(0.0, -6.0, 0.5), target=(0.0, -12.0, 0.0), up=(0.0, 0.0, 1.0))
+    r_toward, *_ = _march_view(medium, toward, z=20.0, alpha=0.0)  # no surface: march to the box exit
+    r_away, *_ = _march_view(medium, away, z=20.0, alpha=0.0)
+    center = (toward.height // 2) * toward.width + toward.width // 2
+    assert float(r_toward.transmission[center]) < math.exp(-2.0 * 1.5)
+    assert torch.all(r_away.transmission == 1.0)
+
+
+def test_rays_missing_the_box_and_surfaces_before_it_are_clear_and_finite():
+    cam = _camera()
+    grid = _homogeneous_grid(Box((30.0, 30.0, 30.0), (31.0, 31.0, 31.0)), 5.0)
+    res, *_ = _march_view(grid, cam, z=100.0)
+    assert torch.all(res.transmission == 1.0) and torch.all(res.scatter == 0.0)
+    entry, exit_ = ray_box_interval(torch.zeros(3), torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([1.0, -1, -1]),
+                                    torch.tensor([2.0, 1, 1]))  # axis-aligned ray: zero components
+    assert torch.isfinite(entry).all() and float(entry) == pytest.approx(1.0) and float(exit_) == pytest.approx(2.0)
+    ahead = _homogeneous_grid(Box((-5.0, -5.0, 5.0), (5.0, 5.0, 9.0)), 5.0)
+    res, *_ = _march_view(ahead, cam, z=2.0)  # the surface hides the medium
+    assert torch.all(res.transmission == 1.0)
+
+
+def test_march_is_stable_at_the_extremes():
+    cam = _camera()
+    for beta in (0.0, 1e4):
+        grid = _homogeneous_grid(Box((-50.0,) * 3, (50.0,) * 3), max(beta, 1e-30))
+        res, *_ = _march_view(grid, cam, z=5.0, grad=True)
+        (res.transmission.sum() + res.scatter.sum()).backward()
+        res = type(res)(res.transmission.detach(), res.scatter.detach())
+        assert torch.isfinite(res.transmission).all() and torch.isfinite(res.scatter).all()
+        assert torch.isfinite(grid.features.grad).all() and torch.isfinite(grid.log_scale.grad).all()
+        if beta == 0.0:
+            assert torch.allclose(res.transmission, torch.ones(1))
+        else:
+            assert float(res.transmission.max()) < 1e-6 and torch.allclose(res.scatter, torch.ones(1))
+
+
+def test_grid_is_trilinear_zero_outside_and_tv_measures_variation():
+    box = Box((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    grid = ExtinctionGrid(box, 2, 0.0, 1.0)
+    with torch.no_grad():
+        grid.features.zero_()
+        grid.features[0, 0, :, :, 1] = 2.0  # x = 1 side
+        assert float(grid.tv()) > 0
+    x = torch.tensor([[0.5, 0.5, 0.5], [0.0, 0.2, 0.7], [1.5, 0.5, 0.5]])
+    with torch.no_grad():
+        b = grid(x)
+    sp = torch.nn.functional.softplus
+    torch.testing.assert_close(b[:2], sp(torch.tensor([1.0, 0.0])))
+    assert float(b[2]) == 0.0
+    with torch.no_grad():
+        grid.features.fill_(0.3)
+        assert float(grid.tv()) == 0.0
+
+
+def test_gaussian_driven_extinction_and_density_scale_closed_forms():
+    alpha = torch.full((2, 3), 0.5)
+    beta_img = 0.2 * alpha  # blended constant beta 0.2
+    ts, te = torch.zeros(6), torch.full((6,), 5.0)
+    res = gaussian_extinction_map(beta_img, alpha, ts, te)
+    torch.testing.assert_close(res.transmission, torch.full((6,), math.exp(-1.0)))
+    torch.testing.assert_close(res.scatter, 1 - res.transmission)
+    scale = density_scale_for(0.5, 10.0)
+    assert math.exp(-math.log(2.0) * scale * 10.0) == pytest.approx(0.5)
+
+
+def test_box_is_the_aabb_enlarged_about_its_centre():
+    box = Box.around(np.array([[0.0, 0, 0], [2, 4, 6]]), 2.0)
+    assert box.lo == pytest.approx((-1.0, -2.0, -3.0)) and box.hi == pytest.approx((3.0, 6.0, 9.0))
+    flat = Box.around(np.zeros((3, 3)), 2.0)  # degenerate cloud: still a (small) box
+    assert all(h > l for l, h in zip(flat.lo, flat.hi))
+
+
+# --- airlight -----------------------------------------------------------------------------
+def test_airlight_variants_start_at_the_dark_channel_estimate():
+    img = torch.zeros(20, 30, 3)
+    img[:5, :8] = torch.tensor([0.8, 0.85, 0.9])  # the haziest (brightest dark channel) region
+    a = estimate_airlight(img, 3)
+    torch.testing.assert_close(a, torch.tensor([0.8, 0.85, 0.9]))
+    desc = view_descriptor(img, 3)
+    dirs = torch.nn.functional.normalize(torch.randn(7, 3), dim=-1)
+    t = torch.rand(7)
+    for module in (NetworkAirlight(16), ConstantAirlight(a), SHAirlight(a, 2)):
+        out = module(dirs, t, desc)
+        assert out.shape == (7, 3) and torch.all((out > 0) & (out < 1))
+        torch.testing.assert_close(out, a.expand(7, 3), rtol=1e-4, atol=1e-4)
+
+
+# --- PLM ----------------------------------------------------------------------------------
+def test_residual_store_is_compact_and_exact_to_8_bits():
+    store = ResidualStore([(12, 16), (6, 8)])
+    assert store.nbytes == 12 * 16 * 3 + 6 * 8 * 3
+    r = torch.rand(12, 16, 3)
+    store.set(0, r, iteration=7)
+    assert store.data[0].dtype == torch.uint8 and store.nbytes == 12 * 16 * 3 + 6 * 8 * 3
+    assert float((store.get(0) - r).abs().max()) <= 0.5 / 255 + 1e-6
+    assert torch.all(store.get(1) == 0)
+    assert not store.is_stale(0, 7) and store.is_stale(0, 8) and store.is_stale(1, 0)
+    inp, con = torch.tensor([0.5, 0.2, 1.0]), torch.tensor([0.3, 0.4, 0.1])
+    torch.testing.assert_close(extract_residual(inp, con), torch.tensor([0.2, 0.0, 0.9]))
+
+
+def test_refresh_cadence():
+    steps = [it for it in range(1, 101) if is_refresh_step(it, m_init=40, interval=15)]
+    assert steps == [55, 70, 85, 100]
+
+
+# --- GGS ----------------------------------------------------------------------------------
+def _ggs_inputs(n=6):
+    depths = torch.linspace(1.0, 6.0, n)
+    radii = torch.arange(1, n + 1, dtype=torch.int32)
+    means2d = torch.stack([torch.arange(n, dtype=torch.float32) + 0.5, torch.full((n,), 0.5)], -1)
+    error = torch.zeros(1, n)
+    return depths, radii, means2d, error, torch.ones(n, dtype=torch.bool)
+
+
+def test_ggs_factors_follow_the_paper_equation():
+    d, r, m, e, vis = _ggs_inputs()
+    bare = (0.0, math.inf)
+    w, _ = ggs_weights(d, r, m, e, vis, GGSFactors(depth=True, radius=False, error=False, clip=bare))
+    dn = (d - 1) / 5
+    torch.testing.assert_close(w, dn / dn.mean())
+    w, _ = ggs_weights(d, r, m, e, vis, GGSFactors(depth=False, radius=True, error=False, clip=bare))
+    torch.testing.assert_close(w, r.float() / r.float().mean())
+    err = torch.tensor([[0.0, 1.0, 2.0, 3.0, 4.0, 100.0]])
+    w, _ = ggs_weights(d, r, m, err, vis, GGSFactors(depth=False, radius=False, error=True, clip=bare))
+    assert torch.all(torch.diff(w) > 0)  # more error, more weight; the outlier is bounded by the sigmoid
+    en = robust_normalise(err[0])
+    torch.testing.assert_close(w, torch.sigmoid(en) / torch.sigmoid(en).mean())
+    w, _ = ggs_weights(d, r, m, err, vis, GGSFactors(clip=bare))
+    assert float(w[0]) == 0.0 and float(w.mean()) == pytest.approx(1.0)  # the nearest has d_norm = 0
+    w, _ = ggs_weights(d, r, m, err, vis, GGSFactors(clip=(0.5, 3.0)))
+    assert float(w.min()) >= 0.5 and float(w.max()) <= 3.0
+    off, _ = ggs_weights(d, r, m, err, vis, GGSFactors(depth=False, radius=False, error=False))
+    assert torch.all(off == 1.0)
+
+
+def test_ggs_degenerate_cases_are_finite():
+    d, r, m, e, vis = _ggs_inputs()
+    same = torch.full_like(d, 3.0)  # d_max = d_min
+    w, _ = ggs_weights(same, r, m, e, vis, GGSFactors(radius=False, error=False))
+    assert torch.all(w == 1.0)
+    w, _ = ggs_weights(d, r, m, torch.zeros(1, 6), vis, GGSFactors())  # MAD = 0
+    assert torch.isfinite(w).all()
+    assert torch.all(robust_normalise(torch.full((5,), 2.0)) == 0)
+    none = torch.zeros(6, dtype=torch.bool)
+    w, info = ggs_weights(d, r, m, e, none)
+    assert torch.all(w == 1.0) and info["visible"] == 0
+    one = torch.zeros(6, dtype=torch.bool)
+    one[0] = True  # a single visible Gaussian: d_max = d_min and MAD = 0 at once
+    w, _ = ggs_weights(d, r, m, e, one)
+    assert torch.isfinite(w).all() and float(w[0]) == 1.0
+    empty = ggs_weights(torch.zeros(0), torch.zeros(0, dtype=torch.int32), torch.zeros(0, 2), e,
+                        torch.zeros(0, dtype=torch.bool))[0]
+    assert empty.shape == (0,)
+
+
+def test_ggs_scales_gradient_rows_and_samples_error_at_pixel_centres():
+    err = torch.arange(12, dtype=torch.float32).reshape(3, 4)
+    pos = torch.tensor([[0.5, 0.5], [3.5, 2.5], [1.0, 0.5]])  # two centres and a midpoint
+    torch.testing.assert_close(sample_error(err, pos), torch.tensor([0.0, 11.0, 0.5]))
+    t = {"a": torch.zeros(3, 2, requires_grad=True), "b": torch.zeros(3, requires_grad=True)}
+    (t["a"].sum() + t["b"].sum()).backward()
+    scale_gradients(t, torch.tensor([1.0, 2.0, 0.5]))
+    torch.testing.assert_close(t["a"].grad, torch.tensor([[1.0, 1.0], [2.0, 2.0], [0.5, 0.5]]))
+    torch.testing.assert_close(t["b"].grad, torch.tensor([1.0, 2.0, 0.5]))
+
+
+# --- losses and restoration ---------------------------------------------------------------
+def test_dark_channel_loss():
+    img = torch.full((9, 9, 3), 0.6)
+    assert float(dcp_loss(img, 3, 0.1)) == pytest.approx(0.6)
+    img[4, 4] = 0.0  # one black pixel darkens its whole 3x3 neighbourhood
+    dark = soft_dark_channel(img, 3, 0.1)
+    assert float(dark[3:6, 3:6].max()) == 0.0 and float(dark[0, 0]) == pytest.approx(0.6)
+    rgb = torch.tensor([[[0.2, 0.5, 0.9]]])
+    soft = float(soft_dark_channel(rgb, 1, 0.1))
+    assert 0.2 <= soft < 0.5 and float(soft_dark_channel(rgb, 1, 0.0)) == pytest.approx(0.2)
+
+
+def test_classical_restore_removes_thin_streaks():
+    img = torch.full((16, 16, 3), 0.3)
+    img[:, 7] = 1.0  # a one-pixel bright streak
+    out = classical_restore(img)
+    assert out.shape == img.shape and float(out.min()) >= 0 and float(out.max()) <= 1
+    assert float((out[:, 7] - out[:, 3]).abs().max()) < 0.05
+
+
+# --- auto evidence ------------------------------------------------------------------------
+def test_haze_evidence_from_dark_channel_and_depth():
+    rng = np.random.default_rng(0)
+    cams = [_camera(32, 24, eye=(0.0, 0.0, float(i) * 0.1)) for i in range(3)]
+    # A ground plane of points at depths 2..20 across the image rows.
+    u, v = np.meshgrid(np.arange(32) + 0.5, np.arange(24) + 0.5)
+    z = 2 + 18 * (v / 24.0)
+    pts = np.stack([(u - 16) / cams[0].fx * z, (v - 12) / cams[0].fy * z, z], -1).reshape(-1, 3)
+    clean = [torch.from_numpy(rng.uniform(0, 1, (24, 32, 3)).astype(np.float32)) for _ in cams]
+    t = torch.from_numpy(np.exp(-0.15 * z).astype(np.float32))[..., None]
+    hazy = [img * t + 0.85 * (1 - t) for img in clean]
+    ev_clean = haze_evidence(clean, cams, pts, 5, 0.2, 0.5)
+    ev_hazy = haze_evidence(hazy, cams, pts, 5, 0.2, 0.5)
+    assert not ev_clean.present and ev_hazy.present
+    assert ev_hazy.dark_depth_corr > 0.5 > abs(ev_clean.dark_depth_corr)
+    assert ev_hazy.transmission_estimate < ev_clean.transmission_estimate
+    no_points = haze_evidence(hazy, cams, np.zeros((0, 3)), 5, 0.2, 0.5)
+    assert no_points.dark_depth_corr == 0.0 and no_points.present
+
+
+def test_particle_evidence_sees_additive_thin_structures():
+    gen = torch.Generator().manual_seed(0)
+    con = torch.rand(48, 64, 3, generator=gen) * 0.5
+    noise = (torch.rand(48, 64, 1, generator=gen) - 0.5) * 0.1
+    fit = con + noise  # symmetric misfit only
+    rainy = fit.clone()
+    for col in range(3, 64, 7):
+        rainy[5:40, col] += 0.5  # bright streaks
+    clean_ev = particle_evidence([residual_tail_counts(fit, con)], 0.3)
+    rain_ev = particle_evidence([residual_tail_counts(rainy, con)], 0.3)
+    assert not clean_ev.present and rain_ev.present and rain_ev.energy > clean_ev.energy
+
+
+# --- config and registry --------------------------------------------------------------------
+def test_config_presets_variants_and_validation():
+    tiny, fast, paper = preset("tiny"), preset("fast"), preset("paper")
+    assert (paper.m_init, paper.m_joint, paper.grid_resolution, paper.ray_samples) == (4000, 26000, 128, 64)
+    assert (paper.lambda_dssim, paper.ggs_r0, paper.refresh_interval) == (0.4, 3.0, 100)
+    assert (paper.lr_scales_init, paper.lr_extinction, paper.lr_airlight) == (2e-3, 5e-3, 5e-4)
+    for c in (tiny, fast):
+        assert 0 < c.m_init < c.iterations and c.m_init / c.iterations == pytest.approx(4000 / 30000, rel=0.25)
+    longer = fast.with_overrides({"iterations": "6000"})
+    assert longer.m_init == 2 * fast.m_init and longer.densify_until == 2 * fast.densify_until
+    assert fast.with_overrides({"components": "csm,ggs", "ggs_clip": "0,10"}).forced_components == {"csm", "ggs"}
+    assert paper_m_init(fast, 1000) == 100 and paper_m_init(paper, 15000) == 15000
+    assert parse_components("auto") is None and parse_components("none") == frozenset()
+    with pytest.raises(NimbusError, match="components"):
+        fast.with_overrides({"components": "csm,fog"})
+    with pytest.raises(NimbusError, match="m_init"):
+        NimbusConfig(iterations=100, m_init=100)
+    with pytest.raises(NimbusError, match="extinction"):
+        fast.with_overrides({"extinction": "voxels"})
+    with pytest.raises(NimbusError, match="unknown preset"):
+        preset("huge")
+
+
+def test_named_methods_are_registered_with_their_settings():
+    import nimbus.nimbusgs.methods  # noqa: F401  (registers the methods)
+    from nimbus.nimbusgs.trainer import NimbusTrainer
+    from nimbus.train.methods import get_method
+
+    assert get_method("nimbus").preset("tiny").components == "auto"
+    assert get_method("nimbus-no-ggs").preset("tiny").forced_components == {"csm", "plm"}
+    assert get_method("nimbus-uniform-extinction").preset("fast").extinction == "uniform"
+    assert get_method("nimbus-minit-1k").preset("fast").m_init == 100
+    assert get_method("nimbus-minit-15k").preset("paper").m_init == 15000
+    cls = get_method("nimbus-no-plm").trainer()
+    assert issubclass(cls, NimbusTrainer) and cls.method_name == "nimbus-no-plm"
+    assert get_method("nimbus").trainer() is NimbusTrainer
