@@ -17,7 +17,7 @@ def run_cli(main: Callable[[Sequence[str] | None], int], argv: Sequence[str] | N
         print(f"error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("error: interrupted; no partial output was kept", file=sys.stderr)
+        print("error: interrupted", file=sys.stderr)
         return 130
 
 

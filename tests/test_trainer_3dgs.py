@@ -84,14 +84,14 @@ def test_resume_continues_to_the_same_result(scene, tmp_path):
     class Interrupted(GaussianTrainer):
         def after_step(self, it):
             super().after_step(it)
-            if it == 8:  # killed after the iteration-6 checkpoint
+            if it == 8:  # Ctrl-C between checkpoints: the interrupt itself saves the state
                 raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
         Interrupted(scene, _cfg(), tmp_path / "half", seed=1, progress=False).train()
     resumed = GaussianTrainer(scene, _cfg(), tmp_path / "half", seed=1, progress=False)
     resumed.load_checkpoint(tmp_path / "half" / CHECKPOINT)
-    assert resumed.iteration == 6
+    assert resumed.iteration == 8
     out = resumed.train()
     assert out["iterations"] == 12
     assert out["num_gaussians"] == full["num_gaussians"]

@@ -248,6 +248,14 @@ class GaussianTrainer:
                 if it % c.checkpoint_interval == 0 and it < c.iterations:
                     self.train_time = time_offset + time.perf_counter() - start
                     self.save_checkpoint()
+        except KeyboardInterrupt:
+            # Keep the progress so `--resume` continues from here (an interrupt inside an
+            # optimiser step may make the resumed run differ from an uninterrupted one by a step).
+            self.train_time = time_offset + time.perf_counter() - start
+            self.save_checkpoint()
+            print(f"interrupted at iteration {self.iteration}; continue with: nimbus-train --resume {self.out}",
+                  file=sys.stderr)
+            raise
         finally:
             bar.close()
         self.train_time = time_offset + time.perf_counter() - start
