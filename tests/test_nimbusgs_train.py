@@ -197,14 +197,14 @@ def test_resume_continues_to_the_same_result(hazy, tmp_path):
     class Interrupted(NimbusTrainer):
         def after_step(self, it):
             super().after_step(it)
-            if it == 10:  # killed after the iteration-8 checkpoint, in stage 2
+            if it == 10:  # Ctrl-C in stage 2, right after a residual refresh (the interrupt saves the state)
                 raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
         Interrupted(hazy, cfg, tmp_path / "half", seed=1, progress=False).train()
     resumed = NimbusTrainer(hazy, cfg, tmp_path / "half", seed=1, progress=False)
     resumed.load_checkpoint(tmp_path / "half" / CHECKPOINT)
-    assert resumed.iteration == 8 and resumed.store is not None and resumed.field is not None
+    assert resumed.iteration == 10 and resumed.store is not None and resumed.field is not None
     out = resumed.train()
     assert out["num_gaussians"] == full["num_gaussians"]
     assert out["psnr"] == pytest.approx(full["psnr"], abs=1e-4)
