@@ -111,7 +111,7 @@ class NimbusTrainer(GaussianTrainer):
         t0 = time.perf_counter()
         self.haze = haze_evidence(self.train_images, [v.camera for v in self.train_views], self.scene.points,
                                   c.dcp_patch, c.auto_dark_threshold, c.auto_depth_corr)
-        self.timing["evidence"] += time.perf_counter() - t0
+        self.timing["evidence_s"] += time.perf_counter() - t0
         self.use_csm = self.haze.present if self.auto else "csm" in forced
         # PLM and GGS are decided from the stage-1 residual when automatic (None until then).
         self.use_plm: bool | None = None if self.auto else "plm" in forced
@@ -219,7 +219,7 @@ class NimbusTrainer(GaussianTrainer):
         h, w = rays.height, rays.width
         T = res.transmission.reshape(h, w, 1)
         P = (res.scatter[:, None] * a).reshape(h, w, 3)
-        self.timing["csm_s"] += time.perf_counter() - t0
+        self.timing["csm_forward_s"] += time.perf_counter() - t0
         return T, P
 
     def compose(self, vi: int, render: dict) -> dict[str, Tensor]:
@@ -326,7 +326,7 @@ class NimbusTrainer(GaussianTrainer):
             t0 = time.perf_counter()
             composites = self._composites(it)
             render_time = (time.perf_counter() - t0) / len(composites)
-            self.timing["evidence" if self.use_plm is None else "plm_refresh_s"] += time.perf_counter() - t0
+            self.timing["evidence_s" if self.use_plm is None else "plm_refresh_s"] += time.perf_counter() - t0
         if self.use_plm is None:
             counts = [residual_tail_counts(img, con) for img, con in zip(self.train_images, composites)]
             self.particles = particle_evidence(counts, c.auto_particle_threshold, c.auto_particle_energy)
@@ -369,6 +369,10 @@ class NimbusTrainer(GaussianTrainer):
         return super().train()
 
     def extra_results(self) -> dict:
+        """``components`` and ``nimbus``: the decision record (:meth:`components_record`), the schedule, the
+        variant, ``time_s`` (wall seconds spent on the auto evidence ``evidence_s``, the medium's forward
+        pass ``csm_forward_s`` -- its backward runs inside the training step --, ``ggs_s`` and
+        ``plm_refresh_s``), the residual store's size and refresh counts, and beta statistics (1/m)."""
         c = self.cfg
         rec = self.components_record()
         rec.update(m_init=c.m_init, m_joint=c.m_joint, extinction=c.extinction if self.use_csm else None,
