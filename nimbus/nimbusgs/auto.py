@@ -23,10 +23,12 @@ level ``sigma = 1.4826 MAD``, the statistic is
 
     asymmetry = (n_pos - n_neg) / (n_pos + n_neg),   n_pos = #{r > k sigma}, n_neg = #{r < -k sigma}
 
-with ``energy`` the mean (over pixels) of the positive tail's excess above ``k sigma``.
-Particles are declared when ``asymmetry >= particle_threshold`` and ``energy >=
-particle_energy``: an under-fitted stage-1 model also leaves a positive tail (small
-bright details it has blurred), but a faint one.
+with ``energy`` the mean (over pixels) of the positive tail's excess above ``k sigma``,
+counted only where the input is also brighter than the neighbouring views see the same
+surface point (:func:`nimbus.nimbusgs.particulate.consistency_excess`): an under-fitted
+stage-1 model also leaves a positive tail (small bright details it has blurred), but
+those details are there in every view.  Particles are declared when ``asymmetry >=
+particle_threshold`` and ``energy >= particle_energy``.
 
 GGS is enabled when either degradation is present (it compensates the gradients the
 degradation attenuates); a clean scene trains as 3DGS with the NimbusGS loss.
@@ -42,7 +44,7 @@ from torch import Tensor
 
 from nimbus.data.camera import Camera
 from nimbus.nimbusgs.airlight import dark_channel_hard, estimate_airlight
-from nimbus.nimbusgs.particulate import highpass
+from nimbus.nimbusgs.particulate import INCONSISTENT_FRACTION, highpass
 
 #: Points per view used for the depth correlation (subsampled deterministically above this).
 MAX_POINTS_PER_VIEW = 4000
@@ -136,14 +138,23 @@ def haze_evidence(images: list[Tensor], cameras: list[Camera], points: np.ndarra
     return HazeEvidence(dark_median, corr, n_pts, float(np.median(t_est)) if t_est else 1.0, bool(present))
 
 
-def residual_tail_counts(image: Tensor, composite: Tensor) -> tuple[int, int, float, int]:
-    """``(n_pos, n_neg, positive tail energy sum, pixels)`` of one view's high-passed residual (module docstring)."""
-    r = highpass((image - composite).float().mean(dim=-1))
+def residual_tail_counts(image: Tensor, composite: Tensor,
+                         excess: Tensor | None = None) -> tuple[int, int, float, int]:
+    """``(n_pos, n_neg, tail energy sum, pixels)`` of one view's high-passed residual (module docstring).
+
+    With ``excess`` (:func:`nimbus.nimbusgs.particulate.consistency_excess`), the energy
+    counts only positive-tail pixels that are also view-inconsistent (or unknown).
+    """
+    raw = (image - composite).float().mean(dim=-1)
+    r = highpass(raw)
     sigma = _MAD_TO_STD * (r - r.median()).abs().median()
     tau = TAIL_SIGMAS * max(float(sigma), 1e-4)
-    n_pos = int((r > tau).sum())
+    pos = r > tau
+    n_pos = int(pos.sum())
     n_neg = int((r < -tau).sum())
-    energy = float((r - tau).clamp_min(0).sum())
+    if excess is not None:
+        pos &= torch.isnan(excess) | (excess >= INCONSISTENT_FRACTION * raw)
+    energy = float((r - tau).clamp_min(0)[pos].sum())
     return n_pos, n_neg, energy, r.numel()
 
 

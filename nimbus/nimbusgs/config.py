@@ -152,12 +152,17 @@ class NimbusConfig(TrainConfig):
         high-passed residual exceeds k robust standard deviations (grown by 1 px), so
         a stage-1 model that is still under-fitted does not have its whole misfit frozen
         into R (pixels absorbed by R give the Gaussians no gradient).
+    consistency_neighbours : int
+        Training views (nearest camera centres) against which a residual is checked for
+        view-inconsistency before it enters R (ours; 0 turns the check off; see
+        :mod:`nimbus.nimbusgs.particulate`).  Also used by the particle evidence.
     refresh_interval : int
         Z_ref, stage-2 iterations between residual refreshes (paper: 100).
     refresh_mode : str
         ``all``: every training view's residual is re-rendered every Z_ref iterations (paper);
         ``lazy`` (ours): a view's residual is re-extracted, from the forward pass that uses
-        it, the first time the view is drawn after a refresh point -- no extra renders.
+        it, the first time the view is drawn after a refresh point -- no extra renders
+        (and no view-consistency check, which needs every view's render).
 
     Geometry-guided gradient scaling (GGS)
     --------------------------------------
@@ -219,6 +224,7 @@ class NimbusConfig(TrainConfig):
     # PLM
     residual_source: str = "render"
     residual_outlier_sigmas: float = 3.0
+    consistency_neighbours: int = 4
     refresh_interval: int = 100
     refresh_mode: str = "all"
     # GGS
@@ -260,7 +266,8 @@ class NimbusConfig(TrainConfig):
         if len(self.ggs_clip) != 2 or not 0.0 <= self.ggs_clip[0] <= 1.0 <= self.ggs_clip[1]:
             raise NimbusError(f"ggs_clip must be (low, high) with 0 <= low <= 1 <= high, got {self.ggs_clip}")
         for name in ("lambda_dcp", "lambda_tv", "lr_scales_init", "lr_extinction", "lr_airlight", "ggs_r0",
-                     "dcp_temperature", "grid_init_std", "residual_outlier_sigmas"):
+                     "dcp_temperature", "grid_init_std", "residual_outlier_sigmas",
+                     "consistency_neighbours"):
             if getattr(self, name) < 0:
                 raise NimbusError(f"{name} must be >= 0, got {getattr(self, name)}")
 

@@ -5,6 +5,22 @@ the input has in excess of it (rain streaks, snow flakes) is the view's particul
 R.  Stage 2 renders ``I_deg = I_con + R`` and re-extracts R every Z_ref iterations
 (:func:`is_refresh_step`).  R has no learnable parameters.
 
+Which residual becomes R (:func:`particle_mask`).  The paper takes all of
+``ReLU(I_in - I_con)``, relying on a 4k-iteration stage 1 that already holds the static
+detail.  Pixels absorbed by R give the Gaussians no gradient, so on a short schedule
+that would freeze every detail stage 1 has not learned yet (small bright flowers look
+like snow to a per-pixel test).  By default R keeps only residuals that are
+
+* outliers of the view's high-passed residual (``outlier_sigmas`` robust standard
+  deviations), and
+* view-inconsistent (:func:`consistency_excess`): brighter than the same surface point,
+  reprojected with the rendered depth, looks in the neighbouring training views (the
+  brightest pixel of a 3 x 3 window there, so a one-pixel reprojection error does not
+  count as inconsistency).  Pixels without a usable neighbour (sky, occlusion, out of
+  view) fall back to the outlier test alone.
+
+``outlier_sigmas = 0`` with no consistency check is the paper's R.
+
 Storage: one ``uint8`` ``[H, W, 3]`` tensor per training view (R is in [0, 1]; 8-bit
 steps of 1/255 are below what a PNG input resolves), replaced in place at each refresh,
 so memory is ``3 H W`` bytes per view whatever the run length.
@@ -12,9 +28,14 @@ so memory is ``3 H W`` bytes per view whatever the run length.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+from nimbus.data.camera import Camera
 
 _LEVELS = 255.0
 _MAD_TO_STD = 1.4826
@@ -22,6 +43,14 @@ _MAD_TO_STD = 1.4826
 HIGHPASS_WINDOW = 5
 #: Floor of the robust noise level (intensity units), so a perfect fit does not flag everything.
 MIN_SIGMA = 1e-3
+#: Window of the maximum filter applied to a neighbour before comparing (pixels): tolerates
+#: a reprojection error of one pixel.
+CONSISTENCY_WINDOW = 3
+#: A reprojected point is occluded in a neighbour when it lies this fraction behind the
+#: neighbour's rendered surface.
+OCCLUSION_TOLERANCE = 0.05
+#: A residual is a particle when at least this fraction of it is view-inconsistent excess.
+INCONSISTENT_FRACTION = 0.5
 
 
 def highpass(x: Tensor, window: int = HIGHPASS_WINDOW) -> Tensor:
@@ -31,25 +60,108 @@ def highpass(x: Tensor, window: int = HIGHPASS_WINDOW) -> Tensor:
     return x - m
 
 
-def outlier_mask(image: Tensor, composite: Tensor, sigmas: float) -> Tensor:
-    """Pixels ``[H, W]`` whose high-passed residual exceeds ``sigmas`` robust standard deviations, grown by 1 px."""
+def _dilate(mask: Tensor) -> Tensor:
+    return F.max_pool2d(mask.float()[None, None], 3, stride=1, padding=1)[0, 0] > 0
+
+
+def outlier_core(image: Tensor, composite: Tensor, sigmas: float) -> Tensor:
+    """Pixels ``[H, W]`` whose high-passed residual (mean over RGB) exceeds ``sigmas`` robust standard deviations."""
     d = highpass((image - composite).float().mean(dim=-1))
     sigma = max(_MAD_TO_STD * float((d - d.median()).abs().median()), MIN_SIGMA)
-    mask = (d > sigmas * sigma).float()
-    return F.max_pool2d(mask[None, None], 3, stride=1, padding=1)[0, 0] > 0
+    return d > sigmas * sigma
 
 
-def extract_residual(image: Tensor, composite: Tensor, outlier_sigmas: float = 0.0) -> Tensor:
-    """R = ReLU(I_in - I_con), clipped to [0, 1]; ``[H, W, 3]`` float.
+@dataclass
+class ViewGeometry:
+    """A training view's rendered surface: ``depth`` [H, W] camera z (depth / alpha), ``valid`` where alpha is high."""
 
-    ``outlier_sigmas > 0`` keeps R only where the residual stands out of the view's
-    residual distribution (:func:`outlier_mask`), so a stage-1 model that is still
-    under-fitted everywhere does not have its whole misfit frozen into R (ours; the
-    paper's R is ``outlier_sigmas = 0``).
+    camera: Camera
+    depth: Tensor
+    valid: Tensor
+
+
+def neighbours(cameras: list[Camera], count: int) -> list[list[int]]:
+    """For each camera, the ``count`` other cameras with the nearest centres."""
+    centers = np.stack([c.center for c in cameras]) if cameras else np.zeros((0, 3))
+    out = []
+    for i in range(len(cameras)):
+        d = np.linalg.norm(centers - centers[i], axis=1)
+        d[i] = np.inf
+        out.append([int(j) for j in np.argsort(d, kind="stable")[:count] if np.isfinite(d[j])])
+    return out
+
+
+def _project(points: Tensor, camera: Camera) -> tuple[Tensor, Tensor]:
+    R = torch.as_tensor(np.array(camera.R), dtype=points.dtype, device=points.device)
+    t = torch.as_tensor(np.array(camera.t), dtype=points.dtype, device=points.device)
+    p = points @ R.T + t
+    z = p[:, 2]
+    zs = z.clamp_min(1e-9)
+    uv = torch.stack([camera.fx * p[:, 0] / zs + camera.cx, camera.fy * p[:, 1] / zs + camera.cy], dim=-1)
+    return uv, z
+
+
+def _sample(image: Tensor, uv: Tensor, mode: str) -> Tensor:
+    h, w = image.shape
+    grid = torch.stack([uv[:, 0] / w * 2 - 1, uv[:, 1] / h * 2 - 1], dim=-1).reshape(1, 1, -1, 2)
+    return F.grid_sample(image[None, None], grid.to(image.dtype), mode=mode, padding_mode="border",
+                         align_corners=False).reshape(-1)
+
+
+@torch.no_grad()
+def consistency_excess(index: int, images: list[Tensor], geometry: list[ViewGeometry], others: list[int]) -> Tensor:
+    """How much brighter view ``index`` is than its neighbours see the same points: ``[H, W]``, NaN where unknown.
+
+    Each pixel with a valid rendered surface is lifted to 3D and projected into the
+    ``others`` views; a projection counts when it lands inside the image, in front of
+    the camera and not behind that view's rendered surface.  The excess is the view's
+    intensity (mean over RGB) minus the median, over the counted neighbours, of their
+    3 x 3-maximum-filtered intensity there.
     """
+    g = geometry[index]
+    cam = g.camera
+    lum = images[index].float().mean(dim=-1)
+    h, w = lum.shape
+    rays = torch.as_tensor(cam.pixel_rays(np.float64), dtype=torch.float32, device=lum.device).reshape(-1, 3)
+    p_cam = rays * g.depth.reshape(-1, 1).float()
+    R = torch.as_tensor(np.array(cam.R), dtype=torch.float32, device=lum.device)
+    t = torch.as_tensor(np.array(cam.t), dtype=torch.float32, device=lum.device)
+    world = (p_cam - t) @ R  # R^T (p - t), row vectors
+    samples = []
+    for j in others:
+        gj = geometry[j]
+        uv, z = _project(world, gj.camera)
+        wj, hj = gj.camera.width, gj.camera.height
+        ok = g.valid.reshape(-1) & (z > 1e-6) & (uv[:, 0] >= 0) & (uv[:, 0] < wj) & (uv[:, 1] >= 0) & (uv[:, 1] < hj)
+        surface = _sample(gj.depth.float(), uv, "nearest")
+        seen = _sample(gj.valid.float(), uv, "nearest") > 0
+        ok &= seen & (z <= surface * (1 + OCCLUSION_TOLERANCE))
+        lum_j = images[j].float().mean(dim=-1)
+        pad = CONSISTENCY_WINDOW // 2
+        bright = F.max_pool2d(lum_j[None, None], CONSISTENCY_WINDOW, stride=1, padding=pad)[0, 0]
+        samples.append(torch.where(ok, _sample(bright, uv, "bilinear"), torch.full_like(z, float("nan"))))
+    if not samples:
+        return torch.full_like(lum, float("nan"))
+    med = torch.nanmedian(torch.stack(samples), dim=0).values
+    return (lum.reshape(-1) - med).reshape(h, w)
+
+
+def particle_mask(image: Tensor, composite: Tensor, outlier_sigmas: float, excess: Tensor | None = None) -> Tensor:
+    """Where the residual is taken into R ``[H, W]`` bool (module docstring), grown by one pixel."""
+    core = outlier_core(image, composite, outlier_sigmas)
+    if excess is not None:
+        r = (image - composite).float().mean(dim=-1)
+        core &= torch.isnan(excess) | (excess >= INCONSISTENT_FRACTION * r)
+    return _dilate(core)
+
+
+def extract_residual(image: Tensor, composite: Tensor, outlier_sigmas: float = 0.0,
+                     excess: Tensor | None = None) -> Tensor:
+    """R = ReLU(I_in - I_con), clipped to [0, 1], ``[H, W, 3]`` float; masked by :func:`particle_mask` when
+    ``outlier_sigmas > 0`` (``excess``: the view's :func:`consistency_excess`, or None to skip that test)."""
     r = (image - composite).clamp(0.0, 1.0)
     if outlier_sigmas > 0:
-        r = r * outlier_mask(image, composite, outlier_sigmas)[..., None]
+        r = r * particle_mask(image, composite, outlier_sigmas, excess)[..., None]
     return r
 
 

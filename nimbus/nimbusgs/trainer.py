@@ -43,7 +43,8 @@ from nimbus.nimbusgs.auto import ParticleEvidence, haze_evidence, particle_evide
 from nimbus.nimbusgs.config import NimbusConfig
 from nimbus.nimbusgs.ggs import GGSFactors, ggs_weights, ndc_grad_norm, scale_gradients
 from nimbus.nimbusgs.losses import dcp_loss, stage_loss
-from nimbus.nimbusgs.particulate import ResidualStore, extract_residual, is_refresh_step
+from nimbus.nimbusgs.particulate import (ResidualStore, ViewGeometry, consistency_excess, extract_residual,
+                                         is_refresh_step, neighbours)
 from nimbus.nimbusgs.restore import RestoreConfig, classical_restore
 from nimbus.nimbusgs.scattering import (Box, ExtinctionGrid, UniformExtinction, ViewRays,
                                         camera_rays, density_scale_for, gaussian_extinction_map, march,
@@ -297,21 +298,34 @@ class NimbusTrainer(GaussianTrainer):
 
     # --- particulate layer --------------------------------------------------------------
     @torch.no_grad()
-    def _composites(self, it: int) -> list[Tensor]:
-        """I_con of every training view with the current model."""
-        out = []
+    def _composites(self, it: int) -> tuple[list[Tensor], list[ViewGeometry]]:
+        """I_con and the rendered surface of every training view with the current model."""
+        cons, geometry = [], []
         deg = self.active_sh_degree(it)
         for vi, view in enumerate(self.train_views):
             render = self.render(view, deg)
-            out.append(self.compose(vi, render)["con"])
-        return out
+            cons.append(self.compose(vi, render)["con"])
+            alpha = render["alpha"]
+            geometry.append(ViewGeometry(view.camera, render["depth"] / alpha.clamp_min(1e-6),
+                                         alpha >= self.cfg.surface_alpha_min))
+        return cons, geometry
+
+    def _excess(self, geometry: list[ViewGeometry]) -> list[Tensor | None]:
+        """Per view, the view-inconsistent excess (None when the check is off)."""
+        c = self.cfg
+        if c.consistency_neighbours < 1 or c.residual_outlier_sigmas <= 0:
+            return [None] * len(geometry)
+        others = neighbours([g.camera for g in geometry], c.consistency_neighbours)
+        return [consistency_excess(i, self.train_images, geometry, others[i]) for i in range(len(geometry))]
 
     def _refresh_all(self, it: int) -> None:
         if len(self.params) == 0:
             return  # the training loop stops with its own message
         t0 = time.perf_counter()
-        for vi, con in enumerate(self._composites(it)):
-            self.store.set(vi, extract_residual(self.train_images[vi], con, self.cfg.residual_outlier_sigmas), it)
+        cons, geometry = self._composites(it)
+        for vi, (con, excess) in enumerate(zip(cons, self._excess(geometry))):
+            self.store.set(vi, extract_residual(self.train_images[vi], con, self.cfg.residual_outlier_sigmas, excess),
+                           it)
         self.store.refreshes += 1
         self.timing["plm_refresh_s"] += time.perf_counter() - t0
 
@@ -320,15 +334,17 @@ class NimbusTrainer(GaussianTrainer):
         if len(self.params) == 0:
             return
         need_renders = self.use_plm is None or (self.use_plm and c.residual_source == "render")
-        composites = None
+        composites = excesses = None
         render_time = 0.0
         if need_renders:
             t0 = time.perf_counter()
-            composites = self._composites(it)
+            composites, geometry = self._composites(it)
             render_time = (time.perf_counter() - t0) / len(composites)
+            excesses = self._excess(geometry)
             self.timing["evidence_s" if self.use_plm is None else "plm_refresh_s"] += time.perf_counter() - t0
         if self.use_plm is None:
-            counts = [residual_tail_counts(img, con) for img, con in zip(self.train_images, composites)]
+            counts = [residual_tail_counts(img, con, ex)
+                      for img, con, ex in zip(self.train_images, composites, excesses)]
             self.particles = particle_evidence(counts, c.auto_particle_threshold, c.auto_particle_energy)
             self.use_plm = self.particles.present
             self.use_ggs = self.use_csm or self.use_plm
@@ -339,7 +355,8 @@ class NimbusTrainer(GaussianTrainer):
             self.store = ResidualStore([(v.camera.height, v.camera.width) for v in self.train_views], self.device)
             for vi, img in enumerate(self.train_images):
                 if c.residual_source == "render":
-                    self.store.set(vi, extract_residual(img, composites[vi], c.residual_outlier_sigmas), it)
+                    self.store.set(vi, extract_residual(img, composites[vi], c.residual_outlier_sigmas, excesses[vi]),
+                                   it)
                 else:
                     restored = classical_restore(img, RestoreConfig(patch=c.dcp_patch))
                     self.store.set(vi, extract_residual(img, restored), it)
