@@ -1,6 +1,7 @@
 """The paper's per-weather comparison tables from the results store, as LaTeX, Markdown and CSV.
 
-Layout (``nimbusgs.tex``, tables ``tab:dehaze`` / ``tab:derain`` / ``tab:desnow`` / ``tab:mix``):
+Layout (``nimbusgs.tex``, tables ``tab:dehaze`` / ``tab:derain`` / ``tab:desnow`` / ``tab:mix`` and the
+supplementary ``tab:h+r`` / ``tab:h+s`` / ``tab:r+s``):
 one table per weather setting, methods as rows, scenes as column groups plus an
 ``Average`` group, each group PSNR↑ / SSIM↑ / LPIPS↓.  Values are means over the
 seeds of a cell; ``Average`` is the mean over scenes and is left empty for a method
@@ -17,7 +18,7 @@ import io
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
@@ -35,6 +36,13 @@ LATEX_MACROS = (r"\providecommand{\first}[1]{\cellcolor{red!25}{#1}}" "\n"
 MARK_MACROS = {1: r"\first", 2: r"\second"}
 MISSING_TEXT = "–"
 MISSING_LATEX = "--"
+
+
+class Written(NamedTuple):
+    """A file ``nimbus-bench tables`` wrote, and which table it holds."""
+
+    path: Path
+    what: str
 
 
 @dataclass
@@ -292,7 +300,8 @@ def to_csv(tables: Sequence[ComparisonTable]) -> str:
     return buf.getvalue()
 
 
-#: The paper's reported numbers (``tables/reference/*.csv``, transcribed from ``nimbusgs.tex``).
+#: The paper's reported numbers (``tables/reference/*.csv``, transcribed from ``nimbusgs.tex``); the
+#: ablation and runtime tables' are in its ``ablations/`` folder (:mod:`benchmark.ablation_tables`).
 PAPER_REFERENCE_DIR = Path(__file__).resolve().parents[1] / "tables" / "reference"
 
 
@@ -322,7 +331,7 @@ def paper_tables(folder: str | Path = PAPER_REFERENCE_DIR) -> dict[str, Comparis
 
 
 def write_tables(df, out: str | Path, method_order: Sequence[str] = (),
-                 paper_reference: str | Path | None = PAPER_REFERENCE_DIR) -> list[Path]:
+                 paper_reference: str | Path | None = PAPER_REFERENCE_DIR) -> list[Written]:
     """Write ``weather_<W>.tex`` / ``.md`` per setting, ``comparisons.md`` (all) and ``comparisons.csv``.
 
     Where the paper has a table for the same setting (``paper_reference``), ``comparisons.md``
@@ -335,18 +344,23 @@ def write_tables(df, out: str | Path, method_order: Sequence[str] = (),
         raise NimbusError(f"--out {out} is a file; give a folder")
     tables = comparison_tables(df, method_order)
     paper = paper_tables(paper_reference) if paper_reference is not None else {}
-    written, sections = [], []
+    written: list[Written] = []
+    sections = []
     for t in tables:
         stem = f"weather_{t.weather}"
-        written.append(atomic_write_text(out / f"{stem}.tex", to_latex(t)))
-        written.append(atomic_write_text(out / f"{stem}.md", to_markdown(t)))
+        what = f"ours: method comparison, {t.caption}"
+        written.append(Written(atomic_write_text(out / f"{stem}.tex", to_latex(t)), what))
+        written.append(Written(atomic_write_text(out / f"{stem}.md", to_markdown(t)), what))
         sections.append(to_markdown(t))
         if t.weather in paper:
-            written.append(atomic_write_text(out / f"paper_{t.weather}.tex", to_latex(paper[t.weather])))
-            written.append(atomic_write_text(out / f"paper_{t.weather}.md", to_markdown(paper[t.weather])))
-            sections.append(to_markdown(paper[t.weather]))
-    written.append(atomic_write_text(out / "comparisons.md", "\n".join(sections)))
-    written.append(atomic_write_text(out / "comparisons.csv", to_csv(tables)))
+            ref = paper[t.weather]
+            written.append(Written(atomic_write_text(out / f"paper_{t.weather}.tex", to_latex(ref)), ref.caption))
+            written.append(Written(atomic_write_text(out / f"paper_{t.weather}.md", to_markdown(ref)), ref.caption))
+            sections.append(to_markdown(ref))
+    written.append(Written(atomic_write_text(out / "comparisons.md", "\n".join(sections)),
+                           "all method comparisons (ours, then the paper's)"))
+    written.append(Written(atomic_write_text(out / "comparisons.csv", to_csv(tables)),
+                           "all method comparisons, long format"))
     return written
 
 

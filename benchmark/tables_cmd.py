@@ -1,4 +1,9 @@
-"""Write the per-weather comparison tables from the results store (``nimbus-bench tables``)."""
+"""Write the paper-style tables from the results store (``nimbus-bench tables``).
+
+Per-weather method comparisons (:mod:`benchmark.tables`), the ablation tables and the
+complexity / runtime table (:mod:`benchmark.ablation_tables`), each with the paper's numbers
+beside it where the paper has the layout.
+"""
 
 from __future__ import annotations
 
@@ -8,7 +13,8 @@ from pathlib import Path
 
 from nimbus.errors import NimbusError
 
-HELP = "write the paper-style per-weather comparison tables (LaTeX, Markdown, CSV) from the results store"
+HELP = ("write the paper-style tables (per-weather comparisons, ablations, complexity / runtime) as LaTeX, "
+        "Markdown and CSV from the results store")
 EXAMPLE = "nimbus-bench tables --root bench_runs --out tables/"
 
 
@@ -20,9 +26,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from benchmark.ablation_tables import ablation_tables, write_ablation_tables
     from benchmark.grid import DEFAULT_METHODS
     from benchmark.store import export_parquet, load_results, store_path
-    from benchmark.tables import write_tables
+    from benchmark.tables import Written, write_tables
 
     if not store_path(args.root).is_file():
         raise NimbusError(f"{store_path(args.root)} does not exist; run `nimbus-bench run --root {args.root}` first")
@@ -30,9 +37,15 @@ def run(args: argparse.Namespace) -> int:
         warnings.simplefilter("ignore", UserWarning)
         df = load_results(args.root)
     order = [m.strip() for m in args.methods.split(",")] if args.methods else list(DEFAULT_METHODS)
+    # Every table is computed before the first file is written, so a refused store writes nothing.
+    ablations, skipped = ablation_tables(df, order)
     written = write_tables(df, args.out, order)
+    written += write_ablation_tables(ablations, args.out)
     if args.parquet:
-        written.append(export_parquet(args.root, args.parquet))
-    for p in written:
-        print(Path(p))
+        written.append(Written(export_parquet(args.root, args.parquet), "the results store as Parquet"))
+    width = max(len(str(w.path)) for w in written)
+    for w in written:
+        print(f"{str(Path(w.path)):<{width}}  {w.what}")
+    if skipped:
+        print(f"not written (no variant of theirs was run): {', '.join(skipped)}")
     return 0

@@ -207,6 +207,7 @@ def test_paper_reference_tables_and_their_marks():
 
     folder = Path(__file__).resolve().parents[1] / "tables" / "reference"
     labels = {}
+    disagree = []
     for f in sorted(folder.glob("*.csv")):
         rows = list(csv.DictReader(f.open()))
         labels[rows[0]["table_label"]] = rows[0]["weather"]
@@ -214,8 +215,12 @@ def test_paper_reference_tables_and_their_marks():
         for r in rows:
             by_scene.setdefault(r["scene"], []).append(r)
         assert list(by_scene)[-1] == "Average" and len({len(v) for v in by_scene.values()}) == 1
-        for scene_rows in by_scene.values():
+        for scene, scene_rows in by_scene.items():
             for k in ("psnr", "ssim", "lpips"):
                 marks = rank_marks([float(r[k]) for r in scene_rows], HIGHER_IS_BETTER[k], DECIMALS[k])
-                assert [{1: "best", 2: "second"}.get(m, "") for m in marks] == [r[f"{k}_mark"] for r in scene_rows]
-    assert labels == {"tab:dehaze": "H", "tab:derain": "R", "tab:desnow": "S", "tab:mix": "H+R+S"}
+                if [{1: "best", 2: "second"}.get(m, "") for m in marks] != [r[f"{k}_mark"] for r in scene_rows]:
+                    disagree.append((rows[0]["table_label"], scene, k))
+    assert labels == {"tab:dehaze": "H", "tab:derain": "R", "tab:desnow": "S", "tab:mix": "H+R+S",
+                      "tab:h+r": "H+R", "tab:h+s": "H+S", "tab:r+s": "R+S"}
+    # The paper's one slip (README): it marks RainyScape's 0.808 second, above OR+3DGS's 0.814.
+    assert disagree == [("tab:r+s", "Tanabata", "ssim")]

@@ -1,0 +1,242 @@
+"""Ablation and complexity / runtime tables from a synthetic results store: values, marks, missing rows,
+LaTeX / Markdown structure, the paper's numbers beside ours, and the ``nimbus-bench tables`` listing."""
+
+from __future__ import annotations
+
+import csv
+import io
+import re
+
+import pytest
+
+from benchmark.ablation_tables import (
+    ABLATION_REFERENCE_DIR, ABLATIONS, OURS, RUNTIME_COLUMNS, ablation_tables, ablations_csv, paper_ablation_tables,
+    runtime_csv, runtime_text, to_latex, to_markdown,
+)
+from benchmark.cli import TOOL
+from benchmark.store import ResultsStore, load_results
+from benchmark.tables import DECIMALS, HIGHER_IS_BETTER, METRICS, rank_marks
+from nimbus.cli_util import run_cli
+
+# (method, weather, scene, psnr, ssim, lpips).  Components: on H, nimbus-full is best everywhere and
+# uniform extinction second; on H+R+S, w/o GGS is run on garden only (no Average).  GGS factors: w/o Depth on
+# both scenes.  M_init: 1K and 4K on both scenes.  Nothing for the loss ablation or the rainy block.
+ROWS = [
+    ("nimbus-full", "H", "garden", 21.0, 0.70, 0.20), ("nimbus-full", "H", "street", 23.0, 0.80, 0.10),
+    ("nimbus-uniform-extinction", "H", "garden", 20.0, 0.60, 0.25),
+    ("nimbus-uniform-extinction", "H", "street", 22.0, 0.70, 0.15),
+    ("nimbus-gaussian-extinction", "H", "garden", 18.0, 0.50, 0.40),
+    ("nimbus-gaussian-extinction", "H", "street", 19.0, 0.55, 0.35),
+    ("nimbus-full", "H+R+S", "garden", 20.0, 0.60, 0.30), ("nimbus-full", "H+R+S", "street", 22.0, 0.70, 0.20),
+    ("nimbus-no-ggs", "H+R+S", "garden", 19.0, 0.65, 0.35),
+    ("nimbus-ggs-no-depth", "H+R+S", "garden", 19.5, 0.55, 0.32),
+    ("nimbus-ggs-no-depth", "H+R+S", "street", 21.5, 0.65, 0.22),
+    ("nimbus-minit-1k", "H+R+S", "garden", 17.0, 0.50, 0.40), ("nimbus-minit-1k", "H+R+S", "street", 18.0, 0.60, 0.3),
+    ("nimbus-minit-4k", "H+R+S", "garden", 20.0, 0.60, 0.30), ("nimbus-minit-4k", "H+R+S", "street", 22.0, 0.7, 0.2),
+    ("3dgs", "H+R+S", "garden", 15.0, 0.40, 0.50), ("3dgs", "H+R+S", "street", 16.0, 0.45, 0.45),
+]
+
+
+def records(preset="tiny", device="cpu"):
+    out = []
+    for i, (method, weather, scene, p, s, lp) in enumerate(ROWS):
+        out.append({"cell_id": f"{scene}-tiny_{weather}_{method}_{preset}_s0", "scene": scene, "size": "tiny",
+                    "weather": weather, "method": method, "preset": preset, "seed": 0, "status": "ok",
+                    "psnr": p, "ssim": s, "lpips": lp, "ssim_protocol": "3dgs", "lpips_net": "vgg",
+                    "train_time_s": 60.0 * (2 if method == "3dgs" else 3), "peak_memory_mb": 512.0 + i,
+                    "num_params": 250_000, "render_fps": 40.0, "device": device})
+    return out
+
+
+def _store(root, recs):
+    store = ResultsStore(root)
+    for r in recs:
+        store.append(r)
+    return load_results(root)
+
+
+@pytest.fixture
+def built(tmp_path):
+    tables, skipped = ablation_tables(_store(tmp_path, records()), ["nimbus-full", "3dgs"])
+    return {t.key: t for t in tables}, skipped
+
+
+def test_ablation_rows_are_registered_methods():
+    import nimbus.nimbusgs.methods  # noqa: F401  (registers the NimbusGS variants)
+    from nimbus.train.methods import METHODS
+
+    for spec in ABLATIONS:
+        assert set(spec.methods) <= set(METHODS), spec.key
+        labels = [r.label for b in spec.blocks for r in b.rows]
+        for b in spec.blocks:
+            assert len({r.label for r in b.rows}) == len(b.rows)  # labels identify rows within a block
+        assert labels
+
+
+def test_tables_built_and_skipped(built):
+    tables, skipped = built
+    assert list(tables) == ["ablation_components", "ablation_ggs", "ablation_minit", "runtime"]
+    assert skipped == ["ablation_loss (tab:ablation_loss)"]
+
+
+def test_component_values_marks_and_missing(built):
+    t = built[0]["ablation_components"]
+    assert [b.weather for b in t.blocks] == ["H", "R", "H+R+S"] and t.groups == ["Average"]
+    hazy = [r.label for r in t.blocks[0].rows]
+    assert hazy == ["Gaussian-Driven Extinction", "Uniform Extinction", "w/o CSM", "Ours"]
+    assert t.values[(0, "Ours", "Average", "psnr")] == pytest.approx(22.0)
+    assert t.values[(0, "Uniform Extinction", "Average", "ssim")] == pytest.approx(0.65)
+    assert t.values.get((0, "w/o CSM", "Average", "psnr")) is None  # not run: missing, never zero
+    assert t.marks(0, "Average", "psnr") == [None, 2, None, 1]
+    assert t.marks(0, "Average", "lpips") == [None, 2, None, 1]
+    assert all(t.values.get((1, r.label, "Average", k)) is None for r in t.blocks[1].rows for k in METRICS)
+    # w/o GGS ran on garden only: no Average, and the note says why
+    assert t.values[(2, "w/o GGS", "Average", "psnr")] is None and t.values[(2, "w/o GGS", "garden", "psnr")] == 19.0
+    assert t.marks(2, "Average", "psnr") == [None, None]  # one value: nothing to rank
+    assert any("w/o GGS (nimbus-no-ggs) was run on 1 of the 2 H+R+S scenes" in n for n in t.notes)
+    assert any("rows not in the paper's table: w/o CSM, w/o PLM" in n for n in t.notes)
+
+
+def test_minit_has_scene_groups(built):
+    t = built[0]["ablation_minit"]
+    assert t.groups == ["garden", "street"] and [r.label for r in t.blocks[0].rows] == ["1K", "2K", "4K", "10K", "15K"]
+    assert t.marks(0, "street", "psnr") == [None, None, 1, None, None]  # two values: best only
+    assert t.values.get((0, "2K", "garden", "psnr")) is None
+
+
+def _latex_parts(tex: str) -> tuple[int, list[str], list[str]]:
+    spec = re.search(r"\\begin\{tabular\}\{([^}]*)\}", tex).group(1)
+    head = tex.split(r"\toprule", 1)[1].split(r"\midrule", 1)[0]
+    body = tex.split(r"\midrule", 1)[1].split(r"\bottomrule", 1)[0]
+    rows = [re.sub(r"^\s*(\\midrule|\\cmidrule\(lr\)\{\d+-\d+\})\s*", "", r) for r in body.split(r"\\")]
+    heads = [h for h in head.split(r"\\") if "&" in h]
+    return len(spec.replace(" ", "")), heads, [r for r in rows if r.strip()]
+
+
+@pytest.mark.parametrize("key", ["ablation_components", "ablation_ggs", "ablation_minit", "runtime"])
+def test_latex_and_markdown_structure(built, key):
+    t = built[0][key]
+    tex = to_latex(t)
+    assert tex.count("{") == tex.count("}")
+    for env in ("table", "tabular"):
+        assert tex.count(rf"\begin{{{env}}}") == tex.count(rf"\end{{{env}}}") == 1
+    assert tex.index(r"\toprule") < tex.index(r"\midrule") < tex.index(r"\bottomrule")
+    ncols, heads, rows = _latex_parts(tex)
+    n_rows = len(t.methods) if key == "runtime" else sum(len(b.rows) for b in t.blocks)
+    assert len(rows) == n_rows
+    for line in heads + rows:
+        spans = [int(s) for s in re.findall(r"\\multicolumn\{(\d+)\}", line)]
+        assert line.count("&") + 1 - len(spans) + sum(spans) == ncols, line
+    md = to_markdown(t)
+    table = [line for line in md.splitlines() if line.startswith("|")]
+    assert len(table) == 2 + n_rows
+    assert len({line.count("|") - line.count("\\|") for line in table}) == 1
+    assert re.fullmatch(r"\|(:?-+:?\|)+", table[1])
+    assert table[0].count("|") - 1 == ncols
+
+
+def test_latex_marks_and_missing_cells(built):
+    tex = to_latex(built[0]["ablation_components"])
+    _, _, rows = _latex_parts(tex)
+    cells = [[c.strip() for c in r.split("&")] for r in rows]
+    ours_hazy = cells[3]
+    assert ours_hazy[0] == "Ours" and all(c.startswith(r"\first{") for c in ours_hazy[2:])
+    assert cells[1][2] == r"\second{21.00}"
+    assert cells[2][0] == "w/o CSM" and cells[2][2:] == ["--"] * 3
+    assert r"\multirow{4}{*}{Hazy (H)}" in tex and tex.count(r"\cmidrule(lr){1-5}") == 2
+    assert "% rows -> methods:" in tex and f"Ours = {OURS}" in tex
+    ggs = to_latex(built[0]["ablation_ggs"])
+    assert ggs.split(r"\bottomrule")[0].count(r"\midrule") == 2  # the paper's rule above "Ours"
+    assert r"$M_\text{init}$" in to_latex(built[0]["ablation_minit"])
+
+
+def test_runtime_values_and_text(built):
+    t = built[0]["runtime"]
+    assert t.methods == ["nimbus-full", "3dgs", "nimbus-no-ggs", "nimbus-ggs-no-depth", "nimbus-minit-1k",
+                         "nimbus-minit-4k"]
+    assert t.values[("3dgs", "Training")] == pytest.approx(2.0) and t.values[("3dgs", "Params.")] == 0.25
+    assert t.values[("nimbus-no-ggs", "FPS")] is None  # one of two scenes
+    params, memory, training, fps = RUNTIME_COLUMNS
+    assert runtime_text(94.1, params, "-") == "94.1M" and runtime_text(0.25, params, "-") == "0.25M"
+    assert runtime_text(29.0, training, "-") == "29min" and runtime_text(1.5, training, "-") == "1.5min"
+    assert runtime_text(171.0, fps, "-") == "171" and runtime_text(None, memory, "-") == "-"
+    assert "device: cpu" in t.notes[0] and "no values" in " ".join(t.notes)
+    rows = list(csv.DictReader(io.StringIO(runtime_csv([t]))))
+    assert rows[1]["method"] == "3dgs" and float(rows[1]["training_min"]) == pytest.approx(2.0)
+    assert rows[2]["fps"] == ""
+
+
+def test_ablations_csv(built):
+    tables = [t for k, t in built[0].items() if k != "runtime"]
+    rows = list(csv.DictReader(io.StringIO(ablations_csv(tables))))
+    ours = [r for r in rows if r["table"] == "ablation_components" and r["weather"] == "H" and r["variant"] == "Ours"]
+    assert [r["scene"] for r in ours] == ["garden", "street", "Average"]
+    assert float(ours[-1]["psnr"]) == pytest.approx(22.0) and ours[-1]["psnr_mark"] == "best"
+    missing = next(r for r in rows if r["variant"] == "w/o CSM" and r["scene"] == "Average")
+    assert missing["psnr"] == "" and missing["runs"] == "0"
+
+
+def test_paper_reference_tables_and_their_marks():
+    """The transcribed ablation tables load in our layout; our rule's best is the paper's bold."""
+    paper = paper_ablation_tables()
+    assert set(paper) == {"ablation_components", "ablation_ggs", "ablation_loss", "ablation_minit", "runtime"}
+    comp = paper["ablation_components"]
+    assert [len(b.rows) for b in comp.blocks] == [3, 2, 2]  # the paper's rows only
+    assert comp.values[(1, "Restored-Derived Residuals", "Average", "psnr")] == 29.65
+    assert paper["runtime"].values[("Ours", "Params.")] == 78.4
+    for spec in ABLATIONS:
+        rows = list(csv.DictReader((ABLATION_REFERENCE_DIR / spec.reference).open()))
+        assert {r["table_label"] for r in rows} == {spec.paper_label}
+        groups: dict = {}
+        for r in rows:
+            groups.setdefault((r["block"], r["scene"]), []).append(r)
+        for group in groups.values():
+            for k in METRICS:
+                marks = rank_marks([float(r[k]) for r in group], HIGHER_IS_BETTER[k], DECIMALS[k])
+                assert ["best" if m == 1 else "" for m in marks] == [r[f"{k}_mark"] for r in group]
+    for t in paper.values():
+        assert "the paper's reported numbers on the paper's data" in to_markdown(t)
+        tex = to_latex(t)
+        assert "NOT results of this benchmark" in tex and "tab:nimbus-bench-paper-" in tex
+
+
+def test_presets_are_not_mixed(tmp_path):
+    recs = records("tiny") + [dict(r, cell_id=r["cell_id"] + "-fast", preset="fast") for r in records("fast")[:4]]
+    tables, _ = ablation_tables(_store(tmp_path, recs))
+    keys = [t.key for t in tables]
+    assert "ablation_components_tiny" in keys and "ablation_components_fast" in keys
+    fast = next(t for t in tables if t.key == "ablation_components_fast")
+    assert fast.values[(0, "Ours", "Average", "psnr")] == pytest.approx(22.0) and "preset fast" in fast.caption
+    assert "ablation_ggs_fast" not in keys  # no GGS-factor row was run with the fast preset
+
+
+def test_several_devices_are_flagged(tmp_path):
+    recs = records() + [dict(records(device="cuda")[-1], cell_id="gpu-3dgs", scene="gpu-scene")]
+    tables, _ = ablation_tables(_store(tmp_path, recs))
+    runtime = next(t for t in tables if t.key == "runtime")
+    assert "several devices (cpu, cuda)" in " ".join(runtime.notes)
+
+
+def test_tables_command_writes_and_lists(tmp_path, capsys):
+    _store(tmp_path / "root", records())
+    out = tmp_path / "tables"
+    assert run_cli(TOOL.run, ["tables", "--root", str(tmp_path / "root"), "--out", str(out)]) == 0
+    names = {p.name for p in out.iterdir()}
+    for stem in ("ablation_components", "ablation_ggs", "ablation_minit", "runtime"):
+        assert {f"{stem}.tex", f"{stem}.md", f"paper_{stem}.tex", f"paper_{stem}.md"} <= names
+    assert {"ablations.md", "ablations.csv", "runtime.csv", "weather_H+R+S.tex", "paper_H+R+S.tex"} <= names
+    assert not any(n.startswith(("ablation_loss", "paper_ablation_loss")) for n in names)
+    listing = capsys.readouterr().out
+    assert "ours: Factor-wise ablation of GGS (H+R+S), preset tiny (paper layout tab:ablation_ggs)" in listing
+    assert "the paper's reported numbers on the paper's data (tab:runtime" in listing
+    assert "not written (no variant of theirs was run): ablation_loss (tab:ablation_loss)" in listing
+    md = (out / "ablations.md").read_text()
+    assert md.index("### Factor-wise ablation of GGS") < md.index("(tab:ablation_ggs: Factor-wise")
+
+
+def test_refused_store_writes_nothing(tmp_path, capsys):
+    recs = records() + [dict(records()[0], cell_id="other", ssim_protocol="dmpix")]
+    _store(tmp_path / "root", recs)
+    out = tmp_path / "tables"
+    assert run_cli(TOOL.run, ["tables", "--root", str(tmp_path / "root"), "--out", str(out)]) == 2
+    assert "mixes SSIM protocols" in capsys.readouterr().err and not out.exists()
