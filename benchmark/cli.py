@@ -13,6 +13,8 @@ COMMANDS = {
     "run": "benchmark.run",
     "tables": "benchmark.tables_cmd",
     "reference": "benchmark.reference",
+    "tradeoff": "benchmark.tradeoff",
+    "stability": "benchmark.stability",
 }
 
 TOOL = SubcommandTool(

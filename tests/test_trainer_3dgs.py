@@ -171,3 +171,24 @@ def test_densify_keeps_optimizer_state_aligned():
         assert p.shape[0] == len(params) and st["exp_avg"].shape == p.shape
     split_scales = torch.exp(params["log_scales"][-2:])
     torch.testing.assert_close(split_scales, (parent_scale / 1.6).expand(2, 3))
+
+
+@pytest.mark.parametrize("relative", [False, True])
+def test_world_size_prune_is_angular_for_far_gaussians_when_relative(relative):
+    # Three 2 m wide Gaussians: near the cameras, 50 m away, and a 20 m giant 50 m away.
+    means = torch.tensor([[0.5, 0.0, 0.0], [50.0, 0.0, 0.0], [0.0, 50.0, 0.0]])
+    widths = torch.tensor([2.0, 2.0, 20.0])
+    tensors = {"means": means, "log_scales": torch.log(widths)[:, None].repeat(1, 3),
+               "quats": torch.tensor([[1.0, 0, 0, 0]]).repeat(3, 1), "opacity_logits": torch.full((3,), 3.0),
+               "sh_dc": torch.zeros(3, 1, 3), "sh_rest": torch.zeros(3, 3, 3)}
+    params = GaussianParams(tensors, {k: 0.01 for k in tensors}, 1e-15)
+    cfg = TrainConfig(prune_big_world=0.1, prune_world_relative=relative, opacity_reset_interval=1,
+                      densify_grad_threshold=1e9)
+    dc = DensityController(cfg, extent=4.0, generator=torch.Generator().manual_seed(0), center=np.zeros(3))
+    dc.accumulate(torch.zeros(3, 2), torch.tensor([3, 3, 3]), 64, 48)
+    counts = dc.densify_and_prune(params, it=2)
+    kept = params["means"].detach()
+    if relative:  # limits: 0.4 m near the cameras, 5 m at 50 m
+        assert counts["pruned"] == 2 and torch.equal(kept, means[1:2])
+    else:  # Inria: 0.4 m everywhere
+        assert counts["pruned"] == 3 and len(kept) == 0

@@ -20,6 +20,20 @@ class TrainConfig:
 
     Learning rates are per Adam parameter group; ``lr_means_*`` are multiplied by
     the scene extent and decay log-linearly from init to final over the run.
+
+    ``train_downscale`` (integer >= 1, default 1) trains on the training views shrunk by
+    that factor (area averaging, cameras scaled to match) while the test views are still
+    rendered and scored at full size: fewer pixels per step for a blurrier model (the
+    image-scale knob of ``nimbus-bench tradeoff``).  Pixel-unit settings (``prune_big_screen_px``,
+    NimbusGS's ``dcp_patch`` and ``ggs_r0``) then count pixels of the shrunk images.
+
+    ``prune_world_relative`` (ours; False is Inria's rule): Inria prunes every Gaussian
+    wider than ``prune_big_world * extent`` in world units, where the extent is the radius
+    of the camera centres.  Far content (hills, the end of a street) drawn at a few
+    pixels per Gaussian is many times that wide at low resolution, and a forward-facing
+    capture has a tiny extent, so that rule deletes the background every densification
+    step.  With True the threshold is ``prune_big_world * max(extent, distance from the
+    mean camera centre)``: unchanged inside the camera region, an angular limit beyond.
     """
 
     iterations: int = 30_000
@@ -46,12 +60,17 @@ class TrainConfig:
     prune_opacity: float = 0.005
     prune_big_screen_px: float = 20.0
     prune_big_world: float = 0.1
+    # ours, off in the Inria defaults: measure prune_big_world against max(extent, the
+    # Gaussian's distance from the mean camera centre), i.e. as an angle for far content
+    prune_world_relative: bool = False
     opacity_reset_interval: int = 3000
     opacity_reset_value: float = 0.01
     max_gaussians: int = 3_000_000
     # initialisation
     init_opacity: float = 0.1
     init_random_points: int = 10_000
+    # training images: shrunk by this integer factor (test views stay full size)
+    train_downscale: int = 1
     # rendering
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     random_background: bool = False
@@ -72,7 +91,8 @@ class TrainConfig:
             raise NimbusError(f"lambda_dssim must be in [0, 1], got {self.lambda_dssim}")
         if self.backend not in ("auto", "torch", "cpp", "gsplat"):
             raise NimbusError(f"backend must be auto, torch, cpp or gsplat, got {self.backend!r}")
-        for name in ("densify_interval", "sh_degree_interval", "opacity_reset_interval", "tile_size"):
+        for name in ("densify_interval", "sh_degree_interval", "opacity_reset_interval", "tile_size",
+                     "train_downscale"):
             if getattr(self, name) < 1:
                 raise NimbusError(f"{name} must be >= 1, got {getattr(self, name)}")
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -92,9 +93,11 @@ class DensityController:
     (``densify_*``, ``percent_dense``, ``prune_*``, ``opacity_reset_*``, ``max_gaussians``).
     """
 
-    def __init__(self, config, extent: float, generator: torch.Generator) -> None:
+    def __init__(self, config, extent: float, generator: torch.Generator, center=None) -> None:
         self.cfg = config
         self.extent = extent
+        # Mean camera centre, for ``prune_world_relative`` (None: the origin).
+        self.center = torch.as_tensor(np.zeros(3) if center is None else np.asarray(center, dtype=np.float64))
         self.gen = generator
         self.grad_accum = torch.zeros(0)
         self.denom = torch.zeros(0)
@@ -172,11 +175,19 @@ class DensityController:
             if it > c.opacity_reset_interval:
                 radii = torch.cat([self.max_radii, torch.zeros(len(params) - n, device=self.max_radii.device)])
                 world = torch.exp(params["log_scales"].detach()).max(dim=1).values
-                remove |= (radii > c.prune_big_screen_px) | (world > c.prune_big_world * self.extent)
+                remove |= (radii > c.prune_big_screen_px) | (world > c.prune_big_world * self._world_reference(params))
             n_prune = int(remove.sum())
             params.keep(~remove)
         self.reset_stats(len(params), params["means"].device)
         return {"cloned": n_clone, "split": n_split, "pruned": n_prune}
+
+    def _world_reference(self, params: GaussianParams) -> Tensor | float:
+        """The length ``prune_big_world`` is a fraction of: the extent, or per Gaussian max(extent, distance)."""
+        if not getattr(self.cfg, "prune_world_relative", False):
+            return self.extent
+        means = params["means"].detach()
+        dist = (means - self.center.to(means)).norm(dim=-1)
+        return dist.clamp_min(self.extent)
 
     def reset_opacity(self, params: GaussianParams) -> None:
         """Clamp every opacity to at most ``opacity_reset_value`` (Inria's periodic reset)."""

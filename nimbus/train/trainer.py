@@ -65,6 +65,22 @@ def quantize_8bit(img: torch.Tensor) -> torch.Tensor:
     return torch.round(img.clamp(0, 1) * 255.0) / 255.0
 
 
+def downscaled_view(view: View, factor: int) -> View:
+    """``view`` with its image shrunk ``factor`` times (area average) and its camera scaled to the new size.
+
+    The image is held in memory (``image``); depth and mask are dropped, since their
+    files keep the full size.  ``factor`` 1 returns ``view`` itself.
+    """
+    if factor == 1:
+        return view
+    img = torch.from_numpy(view.load_image()).permute(2, 0, 1)[None]  # [1, 3, H, W]
+    h, w = max(img.shape[2] // factor, 1), max(img.shape[3] // factor, 1)
+    small = torch.nn.functional.interpolate(img, size=(h, w), mode="area")[0].permute(1, 2, 0)
+    return dataclasses.replace(view, camera=view.camera.scaled(1.0 / factor, width=w, height=h),
+                               image=small.contiguous().numpy(), image_path=None, depth=None, depth_path=None,
+                               mask=None, mask_path=None)
+
+
 class GaussianTrainer:
     """Vanilla 3DGS on a :class:`~nimbus.data.Scene`.
 
@@ -105,12 +121,14 @@ class GaussianTrainer:
         torch.manual_seed(self.seed)
         np.random.seed(self.seed % 2**32)
         self.gen = torch.Generator().manual_seed(self.seed)
-        self.train_views: list[View] = scene.train_views
+        self.train_views: list[View] = [downscaled_view(v, config.train_downscale) for v in scene.train_views]
         self.train_images = [torch.from_numpy(v.load_image()).to(self.device) for v in self.train_views]
         init = init_from_scene(scene, GaussianInitConfig(sh_degree=config.sh_degree, init_opacity=config.init_opacity,
                                                          random_points=config.init_random_points, seed=self.seed))
         self.params = GaussianParams(self._init_tensors(init), self._learning_rates(), config.adam_eps)
-        self.density = DensityController(config, scene.extent, self.gen)
+        centers = scene.camera_centers
+        self.density = DensityController(config, scene.extent, self.gen,
+                                         centers.mean(0) if len(centers) else None)
         self.raster_config = RasterConfig(tile_size=config.tile_size,
                                           projection=ProjectionConfig(near=config.near_plane))
         self._order: list[int] = []
