@@ -190,6 +190,13 @@ class HeightFogMedium:
         return base * (1.0 + self.noise_amplitude * (2.0 * self.noise(points) - 1.0))
 
     # --- optical depth ---------------------------------------------------------------------
+    @property
+    def noise_free(self) -> bool:
+        """The noise part adds nothing: no fog, no modulation, or an opaque fog (``density = inf``),
+        whose exponential part is already ``inf`` and where ``inf * (2 N - 1)`` would mix
+        ``+inf`` and ``-inf`` into NaN."""
+        return self.density == 0 or self.noise_amplitude == 0 or bool(np.isinf(self.density))
+
     def exponential_depth(self, origins: np.ndarray, dirs: np.ndarray, lengths: np.ndarray) -> np.ndarray:
         """Closed-form optical depth of the height-exponential part ``a exp(-b h)``.
 
@@ -238,7 +245,7 @@ class HeightFogMedium:
         o = np.broadcast_to(o, shape + (3,)).reshape(-1, 3)
         d = np.broadcast_to(d, shape + (3,)).reshape(-1, 3)
         L = np.minimum(np.broadcast_to(np.asarray(lengths, dtype=np.float64), shape).reshape(-1), self.noise_far)
-        if self.density == 0 or self.noise_amplitude == 0 or L.size == 0:
+        if self.noise_free or L.size == 0:
             return np.zeros(shape)
         L = np.maximum(L, 0.0)
         n = self._segments(float(L.max()))
@@ -273,7 +280,7 @@ class HeightFogMedium:
         s = ((k + (_GL_X[None, :] + 1) / 2) * (delta / sub)).reshape(-1)
         wts = np.tile(_GL_W / 2 * (delta / sub), samples * sub)
         out = np.zeros((len(d), samples + 1))
-        if self.density == 0 or self.noise_amplitude == 0:
+        if self.noise_free:
             return out
         chunk = max(1, 2_000_000 // len(s))
         for i in range(0, len(d), chunk):
@@ -351,7 +358,7 @@ class RayIntegrator:
         if self._dirs is None:
             self._dirs = self.camera.world_rays(np.float64)[0]
         tau = m.exponential_depth(self.camera.center, self._dirs, distance)
-        if m.noise_amplitude == 0 or m.density == 0:
+        if m.noise_free:
             return tau
         full = self._noise_table()
         n = self.table_samples
