@@ -120,6 +120,12 @@ def parameter_shapes(net: str) -> dict[str, tuple[int, ...]]:
     return shapes
 
 
+def unit_normalize(x: torch.Tensor) -> torch.Tensor:
+    """Each pixel's feature vector of ``x`` (B, C, H, W) scaled to unit length (zero vectors stay ~zero)."""
+    norm = torch.sqrt((x * x).sum(dim=1, keepdim=True))
+    return x / (norm + NORM_EPS)
+
+
 class LPIPSNetwork(nn.Module):
     """Trunk + linear heads.  State dict keys: ``convs.{i}.weight/bias``, ``heads.{k}.weight``.
 
@@ -150,16 +156,19 @@ class LPIPSNetwork(nn.Module):
             One (B, C_k, H_k, W_k) tensor per tapped layer; each pixel's feature vector
             has unit length (zero vectors stay ~zero).
         """
-        x = ((2.0 * x - 1.0) - self.shift) / self.scale
+        x = self.normalize_input(x)
         out = []
         for spec, conv in zip(self.specs, self.convs):
             if spec.pool_before is not None:
                 x = F.max_pool2d(x, spec.pool_before[0], spec.pool_before[1])
             x = F.relu(conv(x))
             if spec.tap:
-                norm = torch.sqrt((x * x).sum(dim=1, keepdim=True))
-                out.append(x / (norm + NORM_EPS))
+                out.append(unit_normalize(x))
         return out
+
+    def normalize_input(self, x: torch.Tensor) -> torch.Tensor:
+        """The trunk's input: (B, 3, H, W) RGB in [0, 1] mapped to [-1, 1], then ImageNet-normalised."""
+        return ((2.0 * x - 1.0) - self.shift) / self.scale
 
     def distance(self, fa: list[torch.Tensor], fb: list[torch.Tensor]) -> torch.Tensor:
         """LPIPS from two images' :meth:`features`; shape (B,)."""

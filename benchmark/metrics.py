@@ -32,15 +32,18 @@ so every table must name the one it used.
 from __future__ import annotations
 
 import functools
+import hashlib
 import math
 import warnings
 from dataclasses import dataclass
 from typing import Any, Sequence
 
+import cv2
 import numpy as np
 import torch
 
-from benchmark.lpips import LPIPS_NETS, LPIPSNetwork, min_input_size
+from benchmark.lpips import LPIPS_NETS, LPIPSNetwork, min_input_size, unit_normalize
+from benchmark.lpips_onnx import OnnxTrunk
 from benchmark.weights import SETUP_COMMAND, WeightsMissing, load_weights, weights_info
 from nimbus.data.images import to_uint8
 from nimbus.errors import NimbusError
@@ -49,8 +52,13 @@ from nimbus.losses import SSIM_C1, SSIM_C2
 SSIM_WINDOW = 11     # Gaussian window side (pixels)
 SSIM_SIGMA = 1.5     # its standard deviation (pixels)
 SSIM_BATCH = 8       # images per SSIM batch: bounds memory (~30 MB per 320x240 image in float64)
-SSIM_TILE = 512      # outputs per banded-matrix tile of the separable filter (bounds the matrix size)
 LPIPS_BATCH = 4      # image pairs per LPIPS batch: VGG on 320x240 needs ~0.1 GB per pair
+LPIPS_GT_CACHE_MB = 1024  # memory for cached ground-truth LPIPS features (MiB; see LPIPS)
+LPIPS_BACKENDS = ("auto", "onnxruntime", "torch")
+#: What ``backend="auto"`` runs each trunk with on the CPU: onnxruntime where it took less CPU time
+#: (VGG: ~1.2x less), torch where it did not (AlexNet: ~10% more with onnxruntime); see
+#: benchmark/bench_metrics.py.  Other devices use torch.
+LPIPS_CPU_BACKEND = {"vgg": "onnxruntime", "alex": "torch"}
 
 
 @dataclass(frozen=True)
@@ -139,73 +147,52 @@ def psnr(pred: Any, gt: Any, quantize: bool = True):
 
 
 # --- SSIM --------------------------------------------------------------------------------
-def _gaussian_taps() -> torch.Tensor:
-    x = torch.arange(SSIM_WINDOW, dtype=torch.float64) - (SSIM_WINDOW - 1) / 2
-    g = torch.exp(-0.5 * (x / SSIM_SIGMA) ** 2)
+@functools.lru_cache(maxsize=1)
+def _gaussian_taps() -> np.ndarray:
+    x = np.arange(SSIM_WINDOW, dtype=np.float64) - (SSIM_WINDOW - 1) / 2
+    g = np.exp(-0.5 * (x / SSIM_SIGMA) ** 2)
     return g / g.sum()
 
 
-@functools.lru_cache(maxsize=32)
-def _band(out_lo: int, out_hi: int, in_lo: int, in_hi: int, valid: bool) -> torch.Tensor:
-    """Weights (in_hi - in_lo, out_hi - out_lo) of inputs on outputs of the 1-D Gaussian filter.
-
-    Output ``o`` is centred on input ``o + half`` ('valid') or ``o`` ('same'; inputs outside
-    [0, n_in) are the zero padding, so they simply have no row).
-    """
-    half = SSIM_WINDOW // 2
-    i = torch.arange(in_lo, in_hi)[:, None]
-    o = torch.arange(out_lo, out_hi)[None, :]
-    k = i - o + (0 if valid else half)
-    taps = _gaussian_taps()
-    return torch.where((k >= 0) & (k < SSIM_WINDOW), taps[k.clamp(0, SSIM_WINDOW - 1)], 0.0).to(torch.float64)
-
-
-def _filter(x: torch.Tensor, valid: bool) -> torch.Tensor:
+def _filter(maps: np.ndarray, valid: bool) -> np.ndarray:
     """Separable 11x11 Gaussian filter of (N, H, W) float64 maps: zero 'same' padding or 'valid'.
 
-    Each 1-D pass is a product with a banded matrix (in tiles of ``SSIM_TILE`` outputs, so
-    the cost stays linear in the image size): on CPU a float64 matrix product is faster
-    than a float32 depthwise convolution and exact to ~1e-15, where float32 moments lose
-    ~4e-5 of SSIM to cancellation in E[x^2] - E[x]^2.
+    OpenCV's separable filter in float64 (exact to ~1e-15; float32 moments would lose ~4e-5
+    of SSIM to cancellation in E[x^2] - E[x]^2), one map at a time: 11 multiply-adds per
+    output and pass, ~4x faster on CPU than the banded matrix product it replaced
+    (``benchmark/bench_metrics.py``).  'valid' is the 'same' map without its
+    ``SSIM_WINDOW // 2`` border, where no window reaches into the padding.
     """
-    half = SSIM_WINDOW // 2
-    for dim in (2, 1):  # width, then height
-        n_in = x.shape[dim]
-        n_out = n_in - 2 * half if valid else n_in
-        parts = []
-        for lo in range(0, n_out, SSIM_TILE):
-            hi = min(lo + SSIM_TILE, n_out)
-            in_lo = lo if valid else max(lo - half, 0)
-            in_hi = hi + 2 * half if valid else min(hi + half, n_in)
-            m = _band(lo, hi, in_lo, in_hi, valid)
-            if dim == 2:
-                parts.append(x[:, :, in_lo:in_hi] @ m)
-            else:
-                parts.append(m.T @ x[:, in_lo:in_hi, :])
-        x = torch.cat(parts, dim=dim) if len(parts) > 1 else parts[0]
-    return x
+    g = _gaussian_taps()
+    out = np.empty_like(maps)
+    for i, m in enumerate(maps):
+        out[i] = cv2.sepFilter2D(m, cv2.CV_64F, g, g, borderType=cv2.BORDER_CONSTANT)
+    if valid:
+        half = SSIM_WINDOW // 2
+        out = out[:, half:-half, half:-half]
+    return out
 
 
 def _ssim_batch(a: np.ndarray, b: np.ndarray, proto: SSIMProtocol) -> np.ndarray:
     """Mean SSIM of each pair of a (B, H, W, C) float32 batch -> (B,) float64."""
     n, h, w, c = a.shape
-    with torch.inference_mode():
-        x = torch.from_numpy(a).double().permute(0, 3, 1, 2).reshape(n * c, h, w)
-        y = torch.from_numpy(b).double().permute(0, 3, 1, 2).reshape(n * c, h, w)
-        mu_x, mu_y, exx, eyy, exy = _filter(torch.cat([x, y, x * x, y * y, x * y]), proto.padding == "valid").chunk(5)
-        sxx = exx - mu_x**2
-        syy = eyy - mu_y**2
-        sxy = exy - mu_x * mu_y
-        if proto.clamp_moments:
-            eps2 = float(np.finfo(np.float32).eps) ** 2
-            sxx, syy = sxx.clamp(min=eps2), syy.clamp(min=eps2)
-            sxy = torch.sign(sxy) * torch.minimum(torch.sqrt(sxx * syy), sxy.abs())
-        num = (2 * mu_x * mu_y + SSIM_C1) * (2 * sxy + SSIM_C2)
-        m = num / ((mu_x**2 + mu_y**2 + SSIM_C1) * (sxx + syy + SSIM_C2))
-        if proto.crop:
-            k = proto.crop
-            m = m[:, k:-k, k:-k]
-        return m.reshape(n, -1).mean(dim=1).numpy()
+    x = a.astype(np.float64).transpose(0, 3, 1, 2).reshape(n * c, h, w)
+    y = b.astype(np.float64).transpose(0, 3, 1, 2).reshape(n * c, h, w)
+    valid = proto.padding == "valid"
+    mu_x, mu_y, exx, eyy, exy = (_filter(m, valid) for m in (x, y, x * x, y * y, x * y))
+    sxx = exx - mu_x**2
+    syy = eyy - mu_y**2
+    sxy = exy - mu_x * mu_y
+    if proto.clamp_moments:
+        eps2 = float(np.finfo(np.float32).eps) ** 2
+        sxx, syy = np.maximum(sxx, eps2), np.maximum(syy, eps2)
+        sxy = np.sign(sxy) * np.minimum(np.sqrt(sxx * syy), np.abs(sxy))
+    num = (2 * mu_x * mu_y + SSIM_C1) * (2 * sxy + SSIM_C2)
+    m = num / ((mu_x**2 + mu_y**2 + SSIM_C1) * (sxx + syy + SSIM_C2))
+    if proto.crop:
+        k = proto.crop
+        m = m[:, k:-k, k:-k]
+    return m.reshape(n, -1).mean(axis=1)
 
 
 def ssim(pred: Any, gt: Any, protocol: str = "3dgs", quantize: bool = True):
@@ -262,6 +249,16 @@ class LPIPS:
         ``nimbus-bench setup-weights``.  Tests pass random weights.
     batch_size : int
         Image pairs per forward pass (bounds memory; default ``LPIPS_BATCH``).
+    backend : {"auto", "onnxruntime", "torch"}
+        What runs the trunk.  ``auto`` (default): on the CPU, :data:`LPIPS_CPU_BACKEND`
+        (onnxruntime for VGG, :mod:`benchmark.lpips_onnx`; torch for AlexNet); torch on
+        other devices.  Both give the same values to ~1e-7.
+    gt_cache_mb : float
+        Memory budget (MiB) for the ground truth's features, keyed by the image's content:
+        scoring several methods against the same views runs the trunk once per view, not
+        once per method.  The cache fills until the budget is reached and then keeps what
+        it has (a sequential scan would otherwise evict every entry before its reuse).
+        0 disables it.  VGG on 320 x 240 needs ~38 MiB per view, AlexNet ~3 MiB.
 
     Raises
     ------
@@ -275,9 +272,12 @@ class LPIPS:
     """
 
     def __init__(self, net: str = "vgg", device: str | torch.device | None = None,
-                 state_dict: dict[str, torch.Tensor] | None = None, batch_size: int = LPIPS_BATCH) -> None:
+                 state_dict: dict[str, torch.Tensor] | None = None, batch_size: int = LPIPS_BATCH,
+                 backend: str = "auto", gt_cache_mb: float = LPIPS_GT_CACHE_MB) -> None:
         if net not in LPIPS_NETS:
             raise NimbusError(f"unknown LPIPS network {net!r}; use one of {', '.join(LPIPS_NETS)}")
+        if backend not in LPIPS_BACKENDS:
+            raise NimbusError(f"unknown LPIPS backend {backend!r}; use one of {', '.join(LPIPS_BACKENDS)}")
         if state_dict is None:
             state_dict = load_weights(net)
             self.weights = weights_info(net)
@@ -292,11 +292,26 @@ class LPIPS:
         # channels-last convolutions run ~15% faster on CPU (oneDNN); the inputs, permuted
         # from (B, H, W, 3) arrays, already have that layout.
         self.network.eval().to(self.device, memory_format=torch.channels_last)
+        if backend == "auto":
+            backend = LPIPS_CPU_BACKEND[net] if self.device.type == "cpu" else "torch"
+        if backend == "onnxruntime" and self.device.type != "cpu":
+            raise NimbusError(f"the onnxruntime LPIPS backend runs on the CPU only; use backend='torch' "
+                              f"for device {self.device}")
+        self.backend = backend
+        self._trunk = OnnxTrunk(net, state_dict) if backend == "onnxruntime" else None
+        self.gt_cache_bytes = int(max(0.0, gt_cache_mb) * 2**20)
+        self._gt_cache: dict[bytes, list[torch.Tensor]] = {}
+        self._gt_cache_used = 0
 
     @property
     def name(self) -> str:
         """Protocol name for tables and JSON, e.g. ``"lpips-vgg-v0.1"``."""
         return f"lpips-{self.net}-v0.1"
+
+    @property
+    def cached_views(self) -> int:
+        """Ground-truth images whose features are in the cache."""
+        return len(self._gt_cache)
 
     def __call__(self, pred: Any, gt: Any, quantize: bool = True):
         """LPIPS distance, per image pair.
@@ -321,10 +336,50 @@ class LPIPS:
         out = np.empty(len(a), np.float64)
         with torch.inference_mode():
             for s in range(0, len(a), self.batch_size):
-                ta = torch.from_numpy(a[s:s + self.batch_size]).permute(0, 3, 1, 2).to(self.device)
-                tb = torch.from_numpy(b[s:s + self.batch_size]).permute(0, 3, 1, 2).to(self.device)
-                out[s:s + len(ta)] = self.network(ta, tb).double().cpu().numpy()
+                fa, fb = self._pair_features(a[s:s + self.batch_size], b[s:s + self.batch_size])
+                out[s:s + len(fa[0])] = self.network.distance(fa, fb).double().cpu().numpy()
         return _result(out, single)
+
+    def _pair_features(self, a: np.ndarray, b: np.ndarray) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """Unit-normalised tapped features of a (n, H, W, 3) prediction batch and its ground truth.
+
+        The trunk runs once on the predictions and the ground-truth images not in the cache.
+        """
+        n = len(a)
+        keys = [_image_key(g) for g in b] if self.gt_cache_bytes else [None] * n
+        todo = [i for i, k in enumerate(keys) if k not in self._gt_cache]
+        feats = self._features(np.concatenate([a, b[todo]]) if todo else a)
+        fa = [f[:n] for f in feats]
+        new = {i: [f[n + j] for f in feats] for j, i in enumerate(todo)}
+        for i in todo:
+            self._remember(keys[i], new[i])
+        if len(todo) == n:  # nothing came from the cache
+            return fa, [f[n:] for f in feats]
+        per_view = [new[i] if i in new else self._gt_cache[keys[i]] for i in range(n)]
+        fb = [torch.stack([v[k] for v in per_view]) for k in range(len(feats))]
+        return fa, fb
+
+    def _features(self, x: np.ndarray) -> list[torch.Tensor]:
+        """:meth:`LPIPSNetwork.features` of a (B, H, W, 3) float32 batch, on the chosen backend."""
+        t = torch.from_numpy(x).permute(0, 3, 1, 2).to(self.device)
+        if self._trunk is None:
+            return self.network.features(t)
+        raw = self._trunk(self.network.normalize_input(t).contiguous().numpy())
+        return [unit_normalize(torch.from_numpy(r)) for r in raw]
+
+    def _remember(self, key: bytes | None, feats: list[torch.Tensor]) -> None:
+        if key is None or key in self._gt_cache:  # the same image twice in one batch
+            return
+        size = sum(f.numel() * f.element_size() for f in feats)
+        if self._gt_cache_used + size <= self.gt_cache_bytes:
+            # clone: a view would keep the whole batch's feature tensors alive
+            self._gt_cache[key] = [f.clone() for f in feats]
+            self._gt_cache_used += size
+
+
+def _image_key(img: np.ndarray) -> bytes:
+    """Content key of one (H, W, 3) float32 image: its shape and the sha256 of its bytes."""
+    return hashlib.sha256(np.ascontiguousarray(img).tobytes()).digest() + repr(img.shape).encode()
 
 
 # --- all three ---------------------------------------------------------------------------

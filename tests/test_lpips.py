@@ -18,7 +18,7 @@ import torch.nn.functional as F
 
 from benchmark import weights
 from benchmark.lpips import LPIPS_NETS, LPIPSNetwork, min_input_size, parameter_shapes, random_state_dict
-from benchmark.metrics import LPIPS
+from benchmark.metrics import LPIPS, LPIPS_CPU_BACKEND
 from benchmark.weights import (Checkpoint, NumpyOnlyUnpickler, WeightSource, WeightsMissing, convert_checkpoint,
                                read_checkpoint, setup_weights, weights_path)
 from nimbus.errors import NimbusError
@@ -265,6 +265,8 @@ def test_real_weights_provenance_and_naive_forward(net):
     a, b = texture(64, 80, seed=7), noisy(texture(64, 80, seed=7), 0.08)
     qa, qb = np.round(a * 255) / 255, np.round(b * 255) / 255
     assert lp(a, b) == pytest.approx(naive_lpips(to_flax(state, net), net, qa, qb), rel=1e-5)
+    fast, slow = LPIPS(net, device="cpu", backend="onnxruntime"), LPIPS(net, device="cpu", backend="torch")
+    assert fast(a, b) == pytest.approx(slow(a, b), abs=1e-5)
 
 
 @pytest.mark.parametrize("net", LPIPS_NETS)
@@ -276,3 +278,54 @@ def test_real_weights_identity_symmetry_monotonic(net):
     assert lp(x, noisy(x, 0.1)) == pytest.approx(lp(noisy(x, 0.1), x), rel=1e-6)
     d = [lp(noisy(x, s), x) for s in (0.01, 0.03, 0.1, 0.3)]
     assert all(a < b for a, b in zip(d, d[1:])) and 0 < d[0] and d[-1] < 2, d
+
+
+# --- back ends and the ground-truth feature cache -----------------------------------------------
+@pytest.mark.parametrize("net", LPIPS_NETS)
+def test_onnxruntime_trunk_agrees_with_torch(net):
+    state = random_state_dict(net, seed=2)
+    gt = np.stack([texture(64, 80, seed=s) for s in (1, 2, 3)])
+    pred = noisy(gt, 0.1)
+    slow = LPIPS(net, device="cpu", state_dict=state, backend="torch", gt_cache_mb=0)
+    fast = LPIPS(net, device="cpu", state_dict=state, backend="onnxruntime")
+    np.testing.assert_allclose(fast(pred, gt), slow(pred, gt), rtol=0, atol=1e-5)
+    assert fast(gt[0], gt[0]) == 0.0
+    assert LPIPS(net, device="cpu", state_dict=state).backend == LPIPS_CPU_BACKEND[net]
+
+
+def test_trunk_graph_is_valid_onnx_with_the_weights():
+    onnx = pytest.importorskip("onnx")
+    from onnx import numpy_helper
+
+    from benchmark.lpips_onnx import trunk_model_bytes
+
+    state = random_state_dict("alex")
+    model = onnx.load_from_string(trunk_model_bytes("alex", state))
+    onnx.checker.check_model(model, full_check=True)
+    assert [o.name for o in model.graph.output] == [f"tap{k}" for k in range(5)]
+    assert [o.type.tensor_type.shape.dim[1].dim_value for o in model.graph.output] == [64, 192, 384, 256, 256]
+    inits = {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
+    assert set(inits) == {k for k in state if k.startswith("convs.")}
+    np.testing.assert_array_equal(inits["convs.1.weight"], state["convs.1.weight"].numpy())
+
+
+def test_gt_cache_runs_the_trunk_once_per_view_and_keeps_to_its_budget():
+    state = random_state_dict("alex", seed=4)
+    gt = np.stack([texture(40, 48, seed=s) for s in range(3)])
+    first, second = noisy(gt, 0.05, seed=5), noisy(gt, 0.2, seed=6)
+    lp = LPIPS("alex", device="cpu", state_dict=state)
+    trunk_images = []
+    run = lp._features
+    lp._features = lambda x: trunk_images.append(len(x)) or run(x)
+    lp(first, gt)
+    assert lp.cached_views == 3 and trunk_images == [6]
+    got = lp(second, gt)
+    assert trunk_images == [6, 3]  # the ground truth came from the cache
+    uncached = LPIPS("alex", device="cpu", state_dict=state, gt_cache_mb=0)
+    np.testing.assert_allclose(got, uncached(second, gt), rtol=0, atol=1e-7)
+    assert uncached.cached_views == 0
+    per_view_mb = sum(f.numel() * 4 for f in run(gt[:1])) / 2**20
+    small = LPIPS("alex", device="cpu", state_dict=state, gt_cache_mb=1.5 * per_view_mb)
+    small(first, gt)
+    assert small.cached_views == 1  # fills to its budget, then keeps what it has
+    np.testing.assert_allclose(small(second, gt), got, rtol=0, atol=1e-7)

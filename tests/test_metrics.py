@@ -92,7 +92,7 @@ def test_ssim_matches_direct_implementation(protocol, padding, crop, clamp):
     assert ssim(pred, gt, protocol) == pytest.approx(naive_ssim(qp, qg, padding, crop, clamp), abs=1e-12)
 
 
-@pytest.mark.parametrize("shape", [(48, 64), (23, 37), (12, 530)])  # 530 > SSIM_TILE: the tiled filter path
+@pytest.mark.parametrize("shape", [(48, 64), (23, 37), (12, 530), (11, 11)])  # a wide strip; the smallest size
 def test_ssim_skimage_protocol_matches_scikit_image(shape):
     from skimage.metrics import structural_similarity
 
