@@ -165,7 +165,9 @@ def parse_set_args(items: list[str] | None) -> dict[str, str]:
 # double a region's Gaussians, and early steps fire on the gradients of a still
 # unfitted model.  The short presets start densifying once the fit has settled a
 # little (~15 % of the run), densify every ~1/20 of the run until half-way, and cap
-# the count so a CPU run stays affordable.
+# the count so a CPU run stays affordable.  ``fast`` measures the world-size prune
+# relative to distance (``prune_world_relative``): with Inria's rule the 3DGS fast run on
+# the small built-in scenes lost 1.7 dB (garden) to deleted background Gaussians.
 PRESETS: dict[str, TrainConfig] = {
     # CI: seconds on the tiny built-in scenes.
     "tiny": TrainConfig(
@@ -176,6 +178,7 @@ PRESETS: dict[str, TrainConfig] = {
     "fast": TrainConfig(
         iterations=3000, sh_degree=3, sh_degree_interval=300, densify_from=300, densify_until=1500,
         densify_interval=100, opacity_reset_interval=1000, max_gaussians=200_000, checkpoint_interval=500,
+        prune_world_relative=True,
     ),
     # The paper's 30k-iteration schedule.
     "paper": TrainConfig(),

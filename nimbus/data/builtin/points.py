@@ -32,12 +32,20 @@ class PointCloudConfig:
         Voxel edge for merging, as a fraction of the median sampled depth (default 0.01).
     max_points : int
         Keep at most this many points, chosen at random with the seed (default 4000).
+    include_backdrop : bool
+        Also unproject backdrop pixels (default False: skipped, as SfM skips a featureless
+        sky).  The built-in backdrop is a textured surface at a finite distance (hills,
+        clouds) that SfM would triangulate.  Its points are merged in voxels that grow
+        with distance (octaves of the median distance), so the far backdrop keeps about
+        the density per pixel that near surfaces have instead of one point per pixel
+        per view.
     """
 
     view_stride: int = 2
     pixel_stride: int = 3
     voxel_fraction: float = 0.01
     max_points: int = 4000
+    include_backdrop: bool = False
 
 
 def sample_points(cameras: Sequence[Camera], images: Sequence[np.ndarray], depths: Sequence[np.ndarray],
@@ -68,7 +76,9 @@ def sample_points(cameras: Sequence[Camera], images: Sequence[np.ndarray], depth
         ov, ou = rng.integers(0, ps, 2)
         rays = cam.pixel_rays(np.float64)[ov::ps, ou::ps]
         z = dep[ov::ps, ou::ps].astype(np.float64)
-        keep = ~msk[ov::ps, ou::ps] & np.isfinite(z) & (z > 0)
+        keep = np.isfinite(z) & (z > 0)
+        if not config.include_backdrop:
+            keep &= ~msk[ov::ps, ou::ps]
         p_cam = rays[keep] * z[keep][:, None]
         pts.append((p_cam - cam.t) @ cam.R)  # camera -> world: R^T (p - t)
         cols.append(img[ov::ps, ou::ps][keep])
@@ -79,8 +89,15 @@ def sample_points(cameras: Sequence[Camera], images: Sequence[np.ndarray], depth
     if len(points) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
     dist = np.linalg.norm(points - np.mean([c.center for c in cameras], axis=0), axis=1)
-    voxel = max(config.voxel_fraction * float(np.median(dist)), 1e-6)
-    keys = np.floor(points / voxel).astype(np.int64)
+    median = max(float(np.median(dist)), 1e-6)
+    voxel = max(config.voxel_fraction * median, 1e-6)
+    if config.include_backdrop:
+        # Octave of the distance beyond the median: voxels double with each doubling of distance.
+        octave = np.ceil(np.log2(np.maximum(dist / median, 1.0))).astype(np.int64)
+        cells = np.floor(points / (voxel * 2.0 ** octave)[:, None]).astype(np.int64)
+        keys = np.concatenate([octave[:, None], cells], axis=1)
+    else:
+        keys = np.floor(points / voxel).astype(np.int64)
     _, first = np.unique(keys, axis=0, return_index=True)
     first.sort()  # keep the first sample of each voxel, in sampling order
     if len(first) > config.max_points:
