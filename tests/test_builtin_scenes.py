@@ -310,3 +310,24 @@ def test_small_scene_is_registered_by_sfm(tmp_path, name):
     result = run_sfm(out / "images", tmp_path / "sfm", camera_model="SIMPLE_PINHOLE", single_camera=True)
     assert result.total == SIZES["small"].n_views
     assert result.registered >= 0.9 * result.total, f"{name}: {result.registered}/{result.total} registered"
+
+
+def test_backdrop_points_are_optional_and_merged_by_distance():
+    from nimbus.data.builtin.points import PointCloudConfig, sample_points
+
+    # Two cameras 0.2 m apart looking down +z: the left half of the image is a wall at 5 m,
+    # the right half a backdrop at 200 m (40x farther: 6 octaves of the median distance).
+    cams = [Camera(40, 30, 30.0, 30.0, 20.0, 15.0, np.eye(3), np.array([-x, 0.0, 0.0])) for x in (0.0, 0.2)]
+    depth = np.full((30, 40), 5.0, np.float32)
+    depth[:, 20:] = 200.0
+    mask = depth > 100
+    images = [np.full((30, 40, 3), 0.5, np.float32)] * 2
+    args = (cams, images, [depth] * 2, [mask] * 2)
+    cfg = PointCloudConfig(view_stride=1, pixel_stride=1, voxel_fraction=0.03, max_points=10**6)  # voxel ~ 1 px at 5 m
+    near_only, _ = sample_points(*args, cfg, seed=0)
+    assert len(near_only) and np.all(near_only[:, 2] < 10)
+    pts, _ = sample_points(*args, PointCloudConfig(**{**cfg.__dict__, "include_backdrop": True}), seed=0)
+    far = pts[:, 2] > 100
+    assert far.any() and (~far).any()
+    # 1200 backdrop samples, far apart at 200 m: without distance-scaled voxels each would stay a point.
+    assert far.sum() < 0.5 * 2 * mask.sum()

@@ -36,9 +36,9 @@ class PointCloudConfig:
         Also unproject backdrop pixels (default False: skipped, as SfM skips a featureless
         sky).  The built-in backdrop is a textured surface at a finite distance (hills,
         clouds) that SfM would triangulate.  Its points are merged in voxels that grow
-        with distance (octaves of the median distance), so the far backdrop keeps about
-        the density per pixel that near surfaces have instead of one point per pixel
-        per view.
+        with distance (octaves of the median distance of the non-backdrop points), so far
+        content keeps about the density per pixel that near surfaces have instead of one
+        point per pixel per view.
     """
 
     view_stride: int = 2
@@ -68,7 +68,7 @@ def sample_points(cameras: Sequence[Camera], images: Sequence[np.ndarray], depth
     colors : ndarray, shape (N, 3), uint8
     """
     rng = np.random.default_rng([seed, 5])
-    pts, cols = [], []
+    pts, cols, backdrop = [], [], []
     chosen = range(0, len(cameras), max(config.view_stride, 1))
     for i in chosen:
         cam, img, dep, msk = cameras[i], images[i], depths[i], masks[i]
@@ -82,6 +82,7 @@ def sample_points(cameras: Sequence[Camera], images: Sequence[np.ndarray], depth
         p_cam = rays[keep] * z[keep][:, None]
         pts.append((p_cam - cam.t) @ cam.R)  # camera -> world: R^T (p - t)
         cols.append(img[ov::ps, ou::ps][keep])
+        backdrop.append(msk[ov::ps, ou::ps][keep])
     if not pts:
         return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
     points = np.concatenate(pts)
@@ -89,7 +90,8 @@ def sample_points(cameras: Sequence[Camera], images: Sequence[np.ndarray], depth
     if len(points) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
     dist = np.linalg.norm(points - np.mean([c.center for c in cameras], axis=0), axis=1)
-    median = max(float(np.median(dist)), 1e-6)
+    surface = ~np.concatenate(backdrop)
+    median = max(float(np.median(dist[surface] if surface.any() else dist)), 1e-6)
     voxel = max(config.voxel_fraction * median, 1e-6)
     if config.include_backdrop:
         # Octave of the distance beyond the median: voxels double with each doubling of distance.
