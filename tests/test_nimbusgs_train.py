@@ -117,6 +117,32 @@ def test_scored_render_is_the_clean_image(hazy, tmp_path):
     assert not torch.allclose(parts["con"], render["rgb"])  # the medium is applied in training only
 
 
+def test_medium_is_the_same_with_the_compiled_and_the_torch_march(hazy, tmp_path, monkeypatch):
+    import dataclasses
+
+    from nimbus.nimbusgs import march_cpp
+
+    if not march_cpp.available():
+        pytest.skip("compiled kernel unavailable (see tests/test_march_cpp.py)")
+    calls = []
+    kernel = march_cpp.grid_optical_depth
+    monkeypatch.setattr(march_cpp, "grid_optical_depth", lambda *a: calls.append(1) or kernel(*a))
+    t = NimbusTrainer(hazy, _cfg(), tmp_path / "run", seed=0, progress=False)
+    with torch.no_grad():
+        render = t.render(t.train_views[0])
+    out = {}
+    for backend in ("auto", "torch"):  # auto: the compiled march; torch: grid_sample
+        t.cfg = dataclasses.replace(t.cfg, backend=backend)
+        t.field.zero_grad(set_to_none=True)
+        T, P = t.medium(t.train_views[0], t._rays_for(0), render, t.descriptors[0])
+        (T.sum() + P.sum()).backward()
+        out[backend] = (T.detach(), P.detach(), t.field.features.grad.clone(), t.field.log_scale.grad.clone())
+    assert len(calls) == 1  # the auto pass, not the torch one
+    assert float(out["torch"][0].min()) < 0.99 and float(out["torch"][2].abs().max()) > 0
+    for a, b in zip(out["auto"], out["torch"]):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+
+
 def test_auto_picks_the_components_each_scene_needs(clean, hazy, rainy, tmp_path):
     cfg = _cfg(components="auto", iterations=41, m_init=40, write_decomposition=False)
     picked = {}

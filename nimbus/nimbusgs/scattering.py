@@ -9,7 +9,10 @@ uniformly in ``[t_n, t_0]`` (the near bound and the rendered surface), then
     P   = sum_i T_i (1 - exp(-beta(r(s_i)) ds)) A          in-scattered airlight
 
 Samples sit at the centres of K equal segments, so a homogeneous field gives
-``T = exp(-beta L)`` and ``P = A (1 - T)`` exactly (the weights telescope).
+``T = exp(-beta L)``.  With one airlight per ray the weights telescope for any field,
+``sum_i T_i (1 - exp(-tau_i)) = 1 - T``, so :func:`march` only accumulates the optical
+depth (on the CPU in a compiled kernel, :mod:`nimbus.nimbusgs.march_cpp`);
+:func:`march_reference` evaluates the equations term by term.
 
 Conventions: rays follow the camera convention of :mod:`nimbus.data.camera` (OpenCV,
 +z forward): the camera-frame direction of pixel (u, v) is ``((u + 0.5 - cx) / fx,
@@ -28,6 +31,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from dataclasses import field as dataclass_field
 
 import numpy as np
 import torch
@@ -35,6 +39,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from nimbus.data.camera import Camera
+from nimbus.errors import NimbusError
 
 #: softplus(0): the extinction of a zero feature before the density scale.
 SOFTPLUS_ZERO = math.log(2.0)
@@ -168,6 +173,15 @@ class ViewRays:
     z_to_distance: Tensor
     height: int
     width: int
+    _boxes: dict = dataclass_field(default_factory=dict, repr=False, compare=False)
+
+    def box_interval(self, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
+        """:func:`ray_box_interval` of these rays through the box ``[lo, hi]``, computed once per box (a
+        training view's rays and the medium's box do not change during training)."""
+        key = tuple(lo.tolist()) + tuple(hi.tolist())
+        if key not in self._boxes:
+            self._boxes[key] = ray_box_interval(self.origin, self.dirs, lo.detach(), hi.detach())
+        return self._boxes[key]
 
 
 def camera_rays(camera: Camera, device=None) -> ViewRays:
@@ -209,7 +223,7 @@ def march_interval(rays: ViewRays, lo: Tensor, hi: Tensor, depth: Tensor, alpha:
     alpha_min : float
         Below this accumulated alpha the rendered depth is not a surface: march to the box exit.
     """
-    entry, exit_ = ray_box_interval(rays.origin, rays.dirs, lo, hi)
+    entry, exit_ = rays.box_interval(lo, hi)
     a = alpha.reshape(-1)
     z = depth.reshape(-1) / a.clamp_min(1e-6)
     surface = torch.where(a >= alpha_min, z * rays.z_to_distance, exit_)
@@ -227,8 +241,20 @@ class MarchResult:
     scatter: Tensor
 
 
-def march(field: nn.Module, origin: Tensor, dirs: Tensor, t_start: Tensor, t_end: Tensor, samples: int) -> MarchResult:
+#: ``march`` backends: ``auto`` (compiled for an :class:`ExtinctionGrid` on the CPU when it
+#: can be used, else ``torch``), ``cpp`` (compiled; NimbusError if it cannot be used),
+#: ``torch`` (any field, any device).
+MARCH_BACKENDS = ("auto", "cpp", "torch")
+
+
+def march(field: nn.Module, origin: Tensor, dirs: Tensor, t_start: Tensor, t_end: Tensor, samples: int,
+          backend: str = "auto") -> MarchResult:
     """Integrate ``field`` along rays with ``samples`` uniform samples per ray (module docstring).
+
+    The scattering weights telescope for any field, ``sum_i T_i (1 - e^-tau_i) = 1 - T``,
+    so only the optical depth ``tau = sum_i beta_i ds`` is accumulated: ``T = exp(-tau)``
+    and ``scatter = -expm1(-tau)``.  :func:`march_reference` evaluates the equations term
+    by term; the two agree to rounding.
 
     Parameters
     ----------
@@ -239,7 +265,41 @@ def march(field: nn.Module, origin: Tensor, dirs: Tensor, t_start: Tensor, t_end
         ``t_end >= t_start`` (empty intervals give T = 1, scatter = 0).
     samples : int
         K.
+    backend : str
+        One of :data:`MARCH_BACKENDS`.  The compiled kernel (:mod:`nimbus.nimbusgs.march_cpp`)
+        marches an :class:`ExtinctionGrid` on the CPU when the rays and intervals need no gradient.
     """
+    if backend not in MARCH_BACKENDS:
+        raise NimbusError(f"unknown march backend {backend!r}; choose one of {', '.join(MARCH_BACKENDS)}")
+    compiled = (backend != "torch" and isinstance(field, ExtinctionGrid)
+                and _compiled_usable(field, origin, dirs, t_start, t_end))
+    if backend == "cpp" and not compiled:
+        raise NimbusError("march backend 'cpp' needs an extinction grid on the CPU, rays and intervals without "
+                          "gradient and a working C++ kernel; use backend 'torch' or 'auto'")
+    if compiled:
+        from nimbus.nimbusgs import march_cpp
+
+        s = march_cpp.grid_optical_depth(field.features, field.lo, field.hi, origin, dirs, t_start, t_end, samples)
+        tau = s * torch.exp(field.log_scale)
+    else:
+        length = (t_end - t_start).clamp_min(0.0)
+        ds = length / samples                                                   # [P]
+        steps = torch.arange(samples, device=dirs.device, dtype=dirs.dtype) + 0.5
+        s = t_start[:, None] + steps[None] * ds[:, None]                        # [P, K]
+        points = origin + s[..., None] * dirs[:, None, :]                       # [P, K, 3]
+        tau = field(points).sum(dim=1) * ds
+    return MarchResult(torch.exp(-tau), -torch.expm1(-tau))
+
+
+def _compiled_usable(field: "ExtinctionGrid", *rays: Tensor) -> bool:
+    from nimbus.nimbusgs import march_cpp
+
+    return march_cpp.usable(field.features, *rays) and march_cpp.available()
+
+
+def march_reference(field: nn.Module, origin: Tensor, dirs: Tensor, t_start: Tensor, t_end: Tensor,
+                    samples: int) -> MarchResult:
+    """:func:`march` written as the paper's equations (per-sample T_i, cumulative sums): the slow reference."""
     length = (t_end - t_start).clamp_min(0.0)
     ds = length / samples                                                   # [P]
     steps = torch.arange(samples, device=dirs.device, dtype=dirs.dtype) + 0.5

@@ -178,7 +178,7 @@ class NimbusTrainer(GaussianTrainer):
         lo, hi = grid.lo, grid.hi
         ts, te = march_interval(rays, lo, hi, depth, torch.ones_like(depth), self.cfg.near_plane,
                                 self.cfg.surface_alpha_min)
-        res = march(grid, rays.origin, rays.dirs, ts, te, self.cfg.ray_samples)
+        res = march(grid, rays.origin, rays.dirs, ts, te, self.cfg.ray_samples, self._march_backend)
         (res.transmission.sum() + res.scatter.sum()).backward()
         return time.perf_counter() - t0
 
@@ -186,6 +186,12 @@ class NimbusTrainer(GaussianTrainer):
     def _sync_stage(self, it: int) -> None:
         self.stage = 1 if it <= self.cfg.m_init else 2
         self.params.set_lr("log_scales", self.cfg.lr_scales_init if self.stage == 1 else self.cfg.lr_scales)
+
+    @property
+    def _march_backend(self) -> str:
+        """The ray march follows the rasterizer's backend: ``auto`` and ``cpp`` march compiled where the kernel
+        applies (:func:`~nimbus.nimbusgs.scattering.march`), ``torch`` and gsplat's CUDA march in torch."""
+        return "auto" if self.cfg.backend in ("auto", "cpp") else "torch"
 
     def _rays_for(self, vi: int) -> ViewRays:
         if vi not in self._rays:
@@ -213,7 +219,7 @@ class NimbusTrainer(GaussianTrainer):
         lo, hi = self._box_tensors
         t_start, t_end = march_interval(rays, lo, hi, depth, alpha, c.near_plane, c.surface_alpha_min)
         if self.field is not None:
-            res = march(self.field, rays.origin, rays.dirs, t_start, t_end, c.ray_samples)
+            res = march(self.field, rays.origin, rays.dirs, t_start, t_end, c.ray_samples, self._march_backend)
         else:
             res = gaussian_extinction_map(self._extinction_image(view), alpha, t_start, t_end)
         a = self.airlight(rays.dirs, res.transmission, descriptor)

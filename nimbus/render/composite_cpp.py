@@ -10,7 +10,9 @@ an edited source is rebuilt.
 
 The same library holds ``_cpp/project.cpp``: :func:`project_and_shade` (projection, SH
 colour and opacity of all Gaussians in one op with a hand-written backward) and
-:func:`bin_gaussians` (tile binning), used by the rasterizer's "cpp" backend.
+:func:`bin_gaussians` (tile binning), used by the rasterizer's "cpp" backend; and
+``_cpp/march.cpp``, NimbusGS's ray march through its extinction grid
+(:mod:`nimbus.nimbusgs.march_cpp`).
 
 Call :func:`available` before :func:`composite`: it builds/loads the kernel once per
 process and returns False, after ONE warning line, when that is impossible (no
@@ -60,7 +62,8 @@ __all__ = ["available", "load_error", "composite", "project_and_shade", "bin_gau
 
 # project.cpp (fused projection + SH shading with its backward, and tile binning) is built
 # into the same library: one build, one load, one availability flag.
-_SOURCES = (Path(__file__).parent / "_cpp" / "composite.cpp", Path(__file__).parent / "_cpp" / "project.cpp")
+# march.cpp (NimbusGS's ray march through the extinction grid, nimbus.nimbusgs.march_cpp) as well.
+_SOURCES = tuple(Path(__file__).parent / "_cpp" / name for name in ("composite.cpp", "project.cpp", "march.cpp"))
 # The torch version is part of the name: a cached build is only valid for the torch it was built against.
 _NAME = "nimbus_composite_t" + "".join(ch if ch.isalnum() else "_" for ch in torch.__version__)
 # Portable flags (no -march=native: the cached library may be shared between machines; the

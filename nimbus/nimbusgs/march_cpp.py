@@ -1,0 +1,80 @@
+"""Compiled CPU ray march through an :class:`~nimbus.nimbusgs.scattering.ExtinctionGrid` (forward and backward).
+
+The kernel (``nimbus/render/_cpp/march.cpp``) is built into the render library of
+:mod:`nimbus.render.composite_cpp` (one build, one load, one availability flag: see
+:func:`nimbus.render.composite_cpp.available`).  It computes, per ray, the softplus
+feature integral ``S = ds * sum_i softplus(f(x_i))`` over the K uniform samples of
+:func:`nimbus.nimbusgs.scattering.march`, without materialising the ``[P, K, 3]``
+sample points; the optical depth is ``tau = S * exp(log_scale)``.  Gradients flow to
+the grid features (and, through the product, to ``log_scale``), not to the rays or
+their intervals: :func:`usable` says when the kernel applies.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+from nimbus.render import composite_cpp
+
+__all__ = ["available", "usable", "grid_optical_depth"]
+
+
+def available() -> bool:
+    """Whether the compiled library (with the march kernel) can be used; never raises, warns once on failure."""
+    return bool(composite_cpp.available())
+
+
+def usable(features: Tensor, *rays: Tensor) -> bool:
+    """Whether the kernel can march these inputs: CPU float32/float64 features, and no gradient wanted for
+    ``rays`` (origin, directions, interval: the kernel differentiates the features only)."""
+    return (features.device.type == "cpu" and features.dtype in (torch.float32, torch.float64)
+            and not any(t.requires_grad for t in rays))
+
+
+class _GridMarch(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, features, origin, dirs, t_start, t_end, lo, hi, samples):
+        S = torch.ops.nimbus_march.march_forward(features, origin, dirs, t_start, t_end, lo, hi, samples)
+        ctx.save_for_backward(features, origin, dirs, t_start, t_end, lo, hi)
+        ctx.samples = samples
+        return S
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_s):
+        features, origin, dirs, t_start, t_end, lo, hi = ctx.saved_tensors
+        g = torch.ops.nimbus_march.march_backward(features, origin, dirs, t_start, t_end, lo, hi, ctx.samples,
+                                                  grad_s.contiguous())
+        return (g,) + (None,) * 7
+
+
+def grid_optical_depth(features: Tensor, lo: Tensor, hi: Tensor, origin: Tensor, dirs: Tensor, t_start: Tensor,
+                       t_end: Tensor, samples: int) -> Tensor:
+    """``S`` ``[P]``: ``ds * sum_i softplus(trilinear(features, x_i))`` over each ray's K samples (module docstring).
+
+    Parameters
+    ----------
+    features : Tensor [1, 1, Z, Y, X] or [Z, Y, X]
+        The grid's raw features (voxel centres span ``lo`` .. ``hi`` corner to corner);
+        gradients flow to it.
+    lo, hi : Tensor [3]
+        The box, world units.
+    origin : Tensor [3]
+    dirs : Tensor [P, 3], unit
+    t_start, t_end : Tensor [P]
+        Interval along each ray (an empty or reversed one gives 0); no gradient.
+    samples : int
+        K >= 1.
+
+    All tensors on the CPU and of one dtype (float32 or float64).  Samples outside the
+    box contribute 0.  Raises RuntimeError when the compiled library is unavailable.
+    """
+    if not available():
+        raise RuntimeError(f"march_cpp: the compiled kernel is unavailable ({composite_cpp.load_error()})")
+    dtype = features.dtype
+    grid = features.reshape(features.shape[-3:])
+    args = [t.detach().to(dtype).contiguous() for t in (origin.reshape(3), dirs, t_start.reshape(-1),
+                                                         t_end.reshape(-1), lo.reshape(3), hi.reshape(3))]
+    return _GridMarch.apply(grid.contiguous(), *args, int(samples))
