@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 from nimbus.errors import NimbusError
 from nimbus.train.config import PRESETS as GS_PRESETS
-from nimbus.train.config import SCHEDULE_FIELDS, TrainConfig
+from nimbus.train.config import SCHEDULE_FIELDS, TrainConfig, lookup_preset
 
 #: The degradation components NimbusGS can model.
 COMPONENTS = ("csm", "plm", "ggs")
@@ -317,7 +317,4 @@ PRESETS: dict[str, NimbusConfig] = {
 
 def preset(name: str) -> NimbusConfig:
     """A named preset (``tiny``, ``fast``, ``paper``); NimbusError lists them for an unknown name."""
-    try:
-        return PRESETS[name]
-    except KeyError:
-        raise NimbusError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}") from None
+    return lookup_preset(PRESETS, name)

@@ -185,8 +185,14 @@ PRESETS: dict[str, TrainConfig] = {
 }
 
 
-def preset(name: str) -> TrainConfig:
+def lookup_preset(presets: dict, name: str):
+    """``presets[name]``; an unknown name raises :class:`NimbusError` listing the known ones."""
     try:
-        return PRESETS[name]
+        return presets[name]
     except KeyError:
-        raise NimbusError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}") from None
+        raise NimbusError(f"unknown preset {name!r}; choose one of {', '.join(presets)}") from None
+
+
+def preset(name: str) -> TrainConfig:
+    """A named 3DGS preset (``tiny``, ``fast``, ``paper``)."""
+    return lookup_preset(PRESETS, name)
