@@ -3,13 +3,16 @@
 import hashlib
 import json
 import zipfile
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
 import numpy as np
+import pycolmap
 import pytest
 
 from nimbus.data.builtin import render_builtin
+from nimbus.data.camera import Camera
 from nimbus.data.images import read_image
 from nimbus.data.io import load_scene, write_scene
 from nimbus.data.scene import Scene, View
@@ -17,7 +20,8 @@ from nimbus.errors import NimbusError
 from weather_synth.archive import encode_layers, read_layers
 from weather_synth.cli import main as synth_main
 from weather_synth.config import protocol_config
-from weather_synth.dataset import degrade_scene
+from weather_synth.dataset import NO_VIEW_POINT_COLOUR, DegradedPointColours, degrade_scene
+from weather_synth.depth import DepthConfig, visible_point_indices
 from weather_synth.settings import ALL_SETTING_NAMES, parse_weather
 from weather_synth.synth import Synthesizer
 
@@ -50,7 +54,7 @@ def test_layout_manifest_and_layers(tmp_path, garden, assert_same_scene):
             assert (d / sub).is_dir(), sub
         assert (d / "manifest.json").is_file() and (d / "train_list.txt").is_file()
         back = load_scene(d)  # trainers read it as any COLMAP scene
-        assert_same_scene(garden, back, atol=1e-6)
+        assert_same_scene(replace(garden, colors=back.colors), back, atol=1e-6)  # colours: see below
     index = json.loads((out / "index.json").read_text())
     assert [s["setting"] for s in index["settings"]] == ["H", "R+S"]
 
@@ -113,14 +117,125 @@ def test_colmap_input_keeps_its_model_and_jpg_names_become_png(tmp_path, make_sc
     assert sorted(p.name for p in (out / "H" / "clean").iterdir()) == back.names
     np.testing.assert_allclose(read_image(out / "H" / "clean" / "001.png"), scene.views[1].load_image(), atol=1e-6)
 
-    # PNG names: the input's model files and images are copied byte for byte.
+    # PNG names: the input's model files (all but the point colours) and images are copied byte for byte.
     png_dir = write_scene(src, tmp_path / "png_scene")
     out2 = tmp_path / "out2"
     degrade_scene(load_scene(png_dir), out2, parse_weather("S,H"), protocol_config(), progress=False)
     for setting in ("S", "H"):
         for f in (png_dir / "sparse" / "0").iterdir():
-            assert (out2 / setting / "sparse" / "0" / f.name).read_bytes() == f.read_bytes()
+            same = (out2 / setting / "sparse" / "0" / f.name).read_bytes() == f.read_bytes()
+            assert same == (f.name != "points3D.bin"), f.name
         assert (out2 / setting / "clean" / "002.png").read_bytes() == (png_dir / "images" / "002.png").read_bytes()
+
+
+def test_point_colours_are_means_of_the_degraded_train_views(tmp_path, garden):
+    out = tmp_path / "bench"
+    config = protocol_config(seed=2)
+    degrade_scene(garden, out, parse_weather("H"), config, progress=False)
+    colours = load_scene(out / "H").colors.astype(int)
+    # Haze lifts the points' colours towards the airlight: far from the clean ones.
+    assert np.abs(colours - garden.colors).mean() > 20
+
+    # By hand: the 8-bit degraded pixel under each point, per view.
+    seen_in = {}
+    for v in garden.views:
+        image = cv2.imread(str(out / "H" / "images" / v.name))[..., ::-1].astype(int)
+        idx, u, vv, _ = visible_point_indices(v.camera, garden.points, config.depth.occlusion_window,
+                                              config.depth.occlusion_tolerance)
+        for i, rgb in zip(idx.tolist(), image[vv, u]):
+            seen_in.setdefault(i, {})[v.name] = rgb
+
+    def train_mean(i):
+        return np.mean([rgb for name, rgb in seen_in[i].items() if name not in garden.test_names], 0)
+
+    # A point that a test view sees too, with a mean that would move by more than 2 levels if it counted.
+    i = next(i for i, by in seen_in.items() if by.keys() & garden.test_names and by.keys() - garden.test_names
+             and np.abs(np.mean(list(by.values()), 0) - train_mean(i)).max() > 2)
+    np.testing.assert_allclose(colours[i], train_mean(i), atol=1)
+    seen = sorted(i for i, by in seen_in.items() if by.keys() - garden.test_names)
+    np.testing.assert_allclose(colours[seen], [train_mean(i) for i in seen], atol=0.51)
+    unseen = np.setdiff1d(np.arange(len(garden.points)), seen)
+    assert 0 < len(unseen) < len(seen)
+    np.testing.assert_allclose(colours[unseen], np.broadcast_to(colours[seen].mean(0), (len(unseen), 3)), atol=0.51)
+    m = json.loads((out / "H" / "manifest.json").read_text())["input"]["point_colours"]
+    assert (m["points"], m["points_seen"], m["train_views"]) == (len(garden.points), len(seen), 14)
+
+
+def test_point_colour_means_without_seen_points_or_views():
+    cam = Camera.look_at((0, 0, -4), (0, 0, 0), (0, 1, 0), 8, 6, fov_x_deg=60)
+    ahead, behind = [0.0, 0.0, 0.0], [0.0, 0.0, -8.0]
+    acc = DegradedPointColours(np.array([ahead, behind]), DepthConfig())
+    for red in (10, 13):
+        acc.add(cam, np.full((6, 8, 3), (red, 20, 30), np.uint8))
+    np.testing.assert_array_equal(acc.colours(), [[12, 20, 30], [12, 20, 30]])  # 11.5 rounds to even
+    assert (acc.points_seen, acc.views) == (1, 2)
+    nothing_seen = DegradedPointColours(np.array([behind]), DepthConfig())
+    nothing_seen.add(cam, np.full((6, 8, 3), (10, 20, 30), np.uint8))
+    nothing_seen.add(cam, np.full((6, 8, 3), (20, 20, 31), np.uint8))
+    np.testing.assert_array_equal(nothing_seen.colours(), [[15, 20, 30]])  # the images' mean colour
+    no_views = DegradedPointColours(np.array([ahead]), DepthConfig())
+    np.testing.assert_array_equal(no_views.colours(), [NO_VIEW_POINT_COLOUR])
+
+
+def write_tracked_colmap_scene(scene, root, text=False):
+    """``scene`` as a COLMAP scene whose model has SIMPLE_RADIAL cameras, tracks, errors and shuffled point ids."""
+    write_scene(scene, root)
+    rec = pycolmap.Reconstruction()
+    for image_id, v in enumerate(scene.views, start=1):
+        c = v.camera
+        rec.add_camera_with_trivial_rig(pycolmap.Camera(model="SIMPLE_RADIAL", width=c.width, height=c.height,
+                                                        params=[c.fx, c.cx, c.cy, 0.0], camera_id=image_id))
+        uv, _ = c.project(scene.points)
+        image = pycolmap.Image(name=v.name, camera_id=image_id, image_id=image_id,
+                               points2D=[pycolmap.Point2D(xy) for xy in uv])
+        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(c.R), c.t))
+    ids = np.random.default_rng(0).permutation(len(scene.points)) * 3 + 5
+    for j, (pid, xyz, rgb) in enumerate(zip(ids.tolist(), scene.points, scene.colors)):
+        track = pycolmap.Track()
+        for image_id in range(1, 2 + j % len(scene.views)):
+            track.add_element(image_id, j)
+        rec.add_point3D_with_id(pid, pycolmap.Point3D(xyz=xyz, color=rgb, track=track, error=0.125 * j))
+    sparse = root / "sparse" / "0"
+    for f in sparse.iterdir():
+        f.unlink()
+    rec.write_text(sparse) if text else rec.write(sparse)
+    return root
+
+
+def model_points(sparse):
+    rec = pycolmap.Reconstruction(sparse)
+    return {pid: (tuple(p.xyz), tuple(p.color), p.error, [(e.image_id, e.point2D_idx) for e in p.track.elements])
+            for pid, p in rec.points3D.items()}, {i: c.model_name for i, c in rec.cameras.items()}
+
+
+@pytest.mark.parametrize("text", [False, True], ids=["bin", "txt"])
+def test_colmap_copy_keeps_tracks_and_cameras_and_takes_degraded_colours(tmp_path, make_scene, text):
+    root = write_tracked_colmap_scene(make_scene(n_views=4, n_points=60, depth=True), tmp_path / "scene", text)
+    scene = load_scene(root)
+    out, rewritten = tmp_path / "out", tmp_path / "rewritten"
+    degrade_scene(scene, out, parse_weather("H"), protocol_config(), progress=False)
+    # The same scene without its folder: the model is rewritten (PINHOLE, no tracks), colours the same way.
+    degrade_scene(replace(scene, root=None), rewritten, parse_weather("H"), protocol_config(), progress=False)
+    src, dst = root / "sparse" / "0", out / "H" / "sparse" / "0"
+    points_file = "points3D.txt" if text else "points3D.bin"
+    assert sorted(f.name for f in dst.iterdir()) == sorted(f.name for f in src.iterdir())
+    for f in src.iterdir():
+        assert ((dst / f.name).read_bytes() == f.read_bytes()) == (f.name != points_file), f.name
+
+    (before, cams_before), (after, cams_after) = model_points(src), model_points(dst)
+    assert set(cams_after.values()) == {"SIMPLE_RADIAL"} and cams_after == cams_before
+    assert after.keys() == before.keys() and len(after) == 60
+    for pid, (xyz, rgb, error, track) in after.items():
+        assert (xyz, error, track) == (before[pid][0], before[pid][2], before[pid][3])
+    new = load_scene(out / "H").colors
+    np.testing.assert_array_equal(new, load_scene(rewritten / "H").colors)
+    assert np.abs(new.astype(int) - scene.colors).mean() > 20
+    assert {c for *_, c in model_points(rewritten / "H" / "sparse" / "0")[1].items()} == {"PINHOLE"}
+
+    # A scene whose points no longer match its folder's model gets the rewritten model.
+    moved = replace(scene, points=scene.points + 1)
+    degrade_scene(moved, tmp_path / "moved", parse_weather("H"), protocol_config(), progress=False)
+    assert set(model_points(tmp_path / "moved" / "H" / "sparse" / "0")[1].values()) == {"PINHOLE"}
 
 
 def test_transforms_input_is_written_as_transforms(tmp_path, make_scene):

@@ -10,7 +10,9 @@ Layout of ``OUT`` (setting folder names: :mod:`weather_synth.settings`)::
                                  byte for byte when they are PNG; else 8-bit PNG)
         sparse/0/ | transforms.json   the input's cameras and points, in the input's
                                  own format (a COLMAP model is copied byte for byte
-                                 when no image had to be renamed to .png)
+                                 when no image had to be renamed to .png, all but
+                                 the point colours); point colours from the
+                                 setting's degraded train views (below)
         depths/, masks/          the scene's depth maps and masks, when it has them
         train_list.txt, test_list.txt   the split
         layers/<stem>.npz        per-view float32 ground-truth layers (below)
@@ -34,6 +36,16 @@ Layer archives hold the layers of the setting's components (``np.load``):
     z-depth of the particle contributing most at the pixel, ``inf`` where none,
     0 for particles without depth (R, S)
 
+The sparse points keep their positions (and COLMAP tracks) but not their
+clean colours: a trainer initialises Gaussians from them, so the clean colours
+would leak ground truth into a method that only sees degraded views.  Each
+point gets, as SfM on the degraded photos would, the mean 8-bit colour of the
+setting's degraded *train* images at the pixel it projects to, over the train
+views that see it (:func:`weather_synth.depth.visible_point_indices`, with the
+depth config's occlusion test); test views and clean images are never used.
+A point no train view sees gets the mean colour of the points that were seen.
+The manifest's ``input.point_colours`` records the rule and the counts.
+
 So 3DGS, gsplat or nerfstudio train on ``OUT/H+R`` directly and a benchmark
 scores renders against ``clean/``.  Views are processed one at a time (memory
 does not grow with the number of views); every setting folder is written
@@ -47,20 +59,25 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
+import struct
 import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Sequence
 
+import numpy as np
+
 from nimbus import __version__
-from nimbus.data.images import encode_png
+from nimbus.data.camera import Camera
+from nimbus.data.images import encode_png, to_uint8
 from nimbus.data.io import SCENE_FORMATS, check_not_input, write_scene_into
 from nimbus.data.scene import Scene, View
 from nimbus.errors import NimbusError
 from nimbus.utils.fs import atomic_dir, atomic_write_bytes, atomic_write_json, check_output_dir, sha256_file
 from weather_synth.archive import encode_layers, jsonable
 from weather_synth.config import SynthConfig
+from weather_synth.depth import DepthConfig, visible_point_indices
 from weather_synth.settings import WeatherSetting
 from weather_synth.synth import Synthesizer
 
@@ -70,6 +87,17 @@ INDEX = "index.json"
 LAYER_DIR = "layers"
 CLEAN_DIR = "clean"
 IMAGE_DIR = "images"
+# Degraded images wait here (inside the setting's temporary folder) until the scene writer has filled images/.
+DEGRADED_STAGING_DIR = "images.degraded"
+# Point colour when there is no degraded train view at all to take colours from (mid-grey).
+NO_VIEW_POINT_COLOUR = (128, 128, 128)
+POINT_COLOUR_RULE = ("mean 8-bit colour of the degraded train images at the point's pixel, over the train views "
+                     "that see it; points no train view sees get the mean colour of the seen points")
+# COLMAP points3D.bin record: point id (uint64), xyz (3 float64), rgb (3 uint8), error (float64),
+# track length (uint64), then (image id, point2D index) int32 pairs.
+COLMAP_POINT_HEAD = struct.Struct("<Q3d3BdQ")
+COLMAP_RGB_OFFSET = 32
+COLMAP_TRACK_ELEMENT_BYTES = 8
 
 
 @dataclass
@@ -85,6 +113,68 @@ class SettingSummary:
     def to_dict(self) -> dict:
         return {"setting": self.setting, "views": self.views, "mean_transmission": self.mean_transmission,
                 "particle_coverage": self.particle_coverage}
+
+
+class DegradedPointColours:
+    """Sparse point colours from degraded train views, accumulated one view at a time (memory O(points)).
+
+    A point's colour is the mean 8-bit colour, at the pixel it projects to, of
+    the views that see it (:func:`weather_synth.depth.visible_point_indices`);
+    a point no added view sees gets the mean colour of the seen points (or,
+    when none is seen, the mean colour of the added images).
+
+    Parameters
+    ----------
+    points : ndarray, shape (N, 3), float64
+        The scene's sparse points (world coordinates).
+    depth : DepthConfig
+        Its occlusion window and tolerance decide which points a view sees.
+    """
+
+    def __init__(self, points: np.ndarray, depth: DepthConfig) -> None:
+        self.points = np.asarray(points, np.float64).reshape(-1, 3)
+        self.depth = depth
+        self.sums = np.zeros((len(self.points), 3), np.int64)
+        self.counts = np.zeros(len(self.points), np.int64)
+        self.pixel_sum = np.zeros(3, np.int64)
+        self.pixels = 0
+        self.views = 0
+
+    def add(self, camera: Camera, image: np.ndarray) -> None:
+        """Add one view: its camera and its 8-bit image, uint8 (H, W, 3) as written."""
+        if image.dtype != np.uint8 or image.shape != (camera.height, camera.width, 3):
+            raise ValueError(f"expected a uint8 ({camera.height}, {camera.width}, 3) image, got "
+                             f"{image.dtype} {image.shape}")
+        idx, u, v, _ = visible_point_indices(camera, self.points, self.depth.occlusion_window,
+                                             self.depth.occlusion_tolerance)
+        self.sums[idx] += image[v, u]  # a view sees each point at most once, so no index repeats
+        self.counts[idx] += 1
+        self.pixel_sum += image.reshape(-1, 3).sum(0, dtype=np.int64)
+        self.pixels += image.shape[0] * image.shape[1]
+        self.views += 1
+
+    @property
+    def points_seen(self) -> int:
+        return int(np.count_nonzero(self.counts))
+
+    def colours(self) -> np.ndarray:
+        """uint8 (N, 3): the mean colours, rounded to the nearest level."""
+        seen = self.counts > 0
+        out = np.empty((len(self.points), 3), np.uint8)
+        out[seen] = np.rint(self.sums[seen] / self.counts[seen, None])
+        if not seen.all():
+            if seen.any():
+                fill = np.rint(out[seen].mean(0))
+            elif self.pixels:
+                fill = np.rint(self.pixel_sum / self.pixels)
+            else:
+                fill = np.array(NO_VIEW_POINT_COLOUR)
+            out[~seen] = fill
+        return out
+
+    def describe(self) -> dict:
+        return {"source": "degraded train views", "rule": POINT_COLOUR_RULE, "train_views": self.views,
+                "points": len(self.points), "points_seen": self.points_seen}
 
 
 def png_name(name: str) -> str:
@@ -140,7 +230,7 @@ def degrade_scene(scene: Scene, out: str | os.PathLike, settings: Sequence[Weath
             start = time.perf_counter()
             with atomic_dir(out / setting.name, overwrite=True) as tmp:
                 t_sum, cov_sum, view_records = 0.0, 0.0, []
-                _write_scene_files(scene, tmp, fmt, renamed, clean_copy)
+                point_colours = DegradedPointColours(scene.points, config.depth)
                 bar = tqdm(scene.views, desc=f"{setting.name:<6}", unit="view", file=sys.stderr,
                            disable=not progress, leave=True, dynamic_ncols=True)
                 for view in bar:
@@ -149,8 +239,11 @@ def degrade_scene(scene: Scene, out: str | os.PathLike, settings: Sequence[Weath
                         input_sums[view.name] = _input_sha256(view, J)
                     res = synth.degrade(view, setting, J)
                     out_name = png_name(view.name)
-                    image_bytes = encode_png(res.image)
-                    atomic_write_bytes(tmp / IMAGE_DIR / out_name, image_bytes)
+                    degraded = to_uint8(res.image)
+                    image_bytes = encode_png(degraded)
+                    atomic_write_bytes(tmp / DEGRADED_STAGING_DIR / out_name, image_bytes)
+                    if view.name not in scene.test_names:
+                        point_colours.add(view.camera, degraded)
                     if renamed and clean_copy is None:
                         atomic_write_bytes(tmp / CLEAN_DIR / out_name, encode_png(J))
                     layer_bytes = encode_layers(res.layers, config.layer_compression)
@@ -169,11 +262,14 @@ def degrade_scene(scene: Scene, out: str | os.PathLike, settings: Sequence[Weath
                     t_sum += res.mean_transmission or 0.0
                     cov_sum += res.particle_coverage
                 bar.close()
+                # The scene files go in last: only now are the point colours known.
+                _write_scene_files(replace(scene, colors=point_colours.colours()), tmp, fmt, renamed, clean_copy)
+                os.replace(tmp / DEGRADED_STAGING_DIR, tmp / IMAGE_DIR)
                 n = len(scene.views)
                 summary = SettingSummary(setting.name, n, t_sum / n if setting.haze else None, cov_sum / n,
                                          time.perf_counter() - start)
                 atomic_write_json(tmp / MANIFEST, jsonable(_manifest(scene, setting, config, synth, view_records,
-                                                                     summary, fmt, source)))
+                                                                     summary, fmt, source, point_colours)))
             summary.seconds = time.perf_counter() - start
             summaries.append(summary)
             clean_copy = out / setting.name / CLEAN_DIR
@@ -194,8 +290,9 @@ def _input_sha256(view: View, image) -> str:
 def _write_scene_files(scene: Scene, tmp: Path, fmt: str, renamed: bool, clean_copy: Path | None) -> None:
     """Cameras, points, split, depths and masks in the input's format; clean images in ``clean/``.
 
-    The scene writer copies (or encodes) the clean images into ``images/``; they
-    move to ``clean/`` and the degraded images take their place.  When names must
+    ``scene`` carries the setting's point colours.  The scene writer copies (or
+    encodes) the clean images into ``images/``; they move to ``clean/`` and the
+    caller then moves the degraded images into ``images/``.  When names must
     change to ``.png`` the writer gets the new names and the clean PNGs are
     written view by view instead.  Once one setting is complete (``clean_copy``,
     its ``clean/``), later settings copy its clean files rather than encode again.
@@ -219,22 +316,78 @@ def _write_scene_files(scene: Scene, tmp: Path, fmt: str, renamed: bool, clean_c
 
 
 def _copy_original_model(scene: Scene, tmp: Path) -> None:
-    """Replace the rewritten COLMAP model by the input's own files (keeps tracks and camera models)."""
+    """Replace the rewritten COLMAP model by the input's own files, with ``scene.colors`` as point colours.
+
+    Keeps the input's tracks and camera models: every file is copied byte for
+    byte except the points file, whose RGB bytes (text: tokens) alone change.
+    The rewritten model stays when the input's points are not ``scene.points``.
+    """
     if scene.source_format != "colmap" or scene.root is None or scene.metadata.get("downscale", 1) != 1:
         return
     src = Path(scene.root) / scene.metadata.get("sparse_dir", "sparse/0")
     if not src.is_dir():
         return
+    files = {f.name: f.read_bytes() for f in sorted(src.iterdir()) if f.is_file()}
+    for name, recolour in (("points3D.bin", _recolour_points3d_bin), ("points3D.txt", _recolour_points3d_txt)):
+        if name in files:
+            files[name] = recolour(files[name], scene.points, scene.colors)
+            if files[name] is None:
+                return
     dst = tmp / "sparse" / "0"
     shutil.rmtree(dst)
     dst.mkdir(parents=True)
-    for f in sorted(src.iterdir()):
-        if f.is_file():
-            shutil.copyfile(f, dst / f.name)
+    for name, data in files.items():
+        atomic_write_bytes(dst / name, data)
+
+
+def _colour_rows(ids: np.ndarray, xyz: np.ndarray, points: np.ndarray) -> np.ndarray | None:
+    """Row of each file point in ``points`` (points pair by ascending id, as read_colmap orders them), or None
+    when the file's positions are not exactly ``points``."""
+    rank = np.empty(len(ids), np.int64)
+    rank[np.argsort(ids, kind="stable")] = np.arange(len(ids))
+    if len(ids) != len(points) or not np.array_equal(xyz, points[rank]):
+        return None
+    return rank
+
+
+def _recolour_points3d_bin(data: bytes, points: np.ndarray, colours: np.ndarray) -> bytes | None:
+    """A COLMAP ``points3D.bin`` with the RGB bytes replaced; None when its points are not ``points``."""
+    n = struct.unpack_from("<Q", data, 0)[0]
+    ids = np.empty(n, np.int64)
+    xyz = np.empty((n, 3))
+    rgb_at = np.empty(n, np.int64)
+    at = 8
+    for i in range(n):
+        pid, x, y, z, _, _, _, _, track_length = COLMAP_POINT_HEAD.unpack_from(data, at)
+        ids[i], xyz[i], rgb_at[i] = pid, (x, y, z), at + COLMAP_RGB_OFFSET
+        at += COLMAP_POINT_HEAD.size + COLMAP_TRACK_ELEMENT_BYTES * track_length
+    rows = _colour_rows(ids, xyz, points)
+    if rows is None or at != len(data):
+        return None
+    out = np.frombuffer(data, np.uint8).copy()
+    out[rgb_at[:, None] + np.arange(3)] = colours[rows]
+    return out.tobytes()
+
+
+def _recolour_points3d_txt(data: bytes, points: np.ndarray, colours: np.ndarray) -> bytes | None:
+    """A COLMAP ``points3D.txt`` with the R G B tokens replaced; None when its points are not ``points``."""
+    lines = data.decode().splitlines(keepends=True)
+    rows = [i for i, line in enumerate(lines) if line.strip() and not line.lstrip().startswith("#")]
+    tokens = [lines[i].split() for i in rows]
+    ids = np.array([int(t[0]) for t in tokens], np.int64)
+    xyz = np.array([[float(c) for c in t[1:4]] for t in tokens], np.float64).reshape(-1, 3)
+    order = _colour_rows(ids, xyz, points)
+    if order is None:
+        return None
+    for i, t, row in zip(rows, tokens, order):
+        t[4:7] = (str(c) for c in colours[row])
+        line = lines[i]
+        lines[i] = " ".join(t) + line[len(line.rstrip("\r\n")):]
+    return "".join(lines).encode()
 
 
 def _manifest(scene: Scene, setting: WeatherSetting, config: SynthConfig, synth: Synthesizer, views: list,
-              summary: SettingSummary, fmt: str, source: str | None) -> dict:
+              summary: SettingSummary, fmt: str, source: str | None, point_colours: DegradedPointColours) -> dict:
     return {
         "format": FORMAT,
         "generator": "nimbus-synth degrade",
@@ -251,6 +404,7 @@ def _manifest(scene: Scene, setting: WeatherSetting, config: SynthConfig, synth:
             "views": len(scene.views),
             "test_views": sorted(scene.test_names),
             "points": int(len(scene.points)),
+            "point_colours": point_colours.describe(),
             "metadata": scene.metadata,
         },
         "scene": synth.describe(),

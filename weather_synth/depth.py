@@ -123,20 +123,23 @@ def _grey(image: np.ndarray) -> np.ndarray:
 
 
 # --- sparse points --------------------------------------------------------------------------
-def visible_points(camera: Camera, points: np.ndarray, window: float = 0.015,
-                   tolerance: float = 0.1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Sparse points seen by a camera: pixel columns, rows and z-depths of the kept points.
+def visible_point_indices(camera: Camera, points: np.ndarray, window: float = 0.015, tolerance: float = 0.1
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Sparse points seen by a camera: indices into ``points``, pixel columns, rows and z-depths of the kept points.
 
     Points behind the camera or outside the image are dropped; per pixel the
     nearest point wins; a point is dropped as occluded when a point nearer by
     more than ``tolerance`` (relative) projects within ``window * width`` pixels.
+    Indices are increasing (int64); columns and rows are the pixels the points
+    fall in (int64, ``image[v, u]``).
     """
     W, H = camera.width, camera.height
     if len(points) == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     uv, z = camera.project(points)
     ok = (z > 1e-9) & np.isfinite(uv).all(1)
     ok &= (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+    idx = np.flatnonzero(ok)
     u, v, z = uv[ok, 0].astype(np.int64), uv[ok, 1].astype(np.int64), z[ok]
     # Nearest point per pixel: sort far to near so the nearest write lands last.
     zbuf = np.full((H, W), np.inf, np.float32)
@@ -146,7 +149,14 @@ def visible_points(camera: Camera, points: np.ndarray, window: float = 0.015,
     k = max(1, int(round(window * W))) * 2 + 1
     near = cv2.erode(zbuf, np.ones((k, k), np.uint8), borderType=cv2.BORDER_REPLICATE)
     keep &= z <= near[v, u] * (1 + tolerance)
-    return u[keep], v[keep], z[keep]
+    return idx[keep], u[keep], v[keep], z[keep]
+
+
+def visible_points(camera: Camera, points: np.ndarray, window: float = 0.015,
+                   tolerance: float = 0.1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel columns, rows and z-depths of the sparse points a camera sees (:func:`visible_point_indices`)."""
+    _, u, v, z = visible_point_indices(camera, points, window, tolerance)
+    return u, v, z
 
 
 def fill_sparse(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
