@@ -192,3 +192,35 @@ def test_world_size_prune_is_angular_for_far_gaussians_when_relative(relative):
         assert counts["pruned"] == 2 and torch.equal(kept, means[1:2])
     else:  # Inria: 0.4 m everywhere
         assert counts["pruned"] == 3 and len(kept) == 0
+
+
+def test_a_degraded_dataset_is_scored_against_its_clean_images(scene, tmp_path):
+    """A ``nimbus-synth degrade`` folder holds the degraded inputs in images/ and the ground truth in clean/: the
+    trainer's score must use clean/, or reproducing the weather would score best."""
+    import cv2
+
+    from nimbus.data.images import read_image
+    from nimbus.data.io import load_scene, write_scene_into
+
+    root = tmp_path / "scene"
+    root.mkdir()
+    write_scene_into(scene, root, format="colmap")
+    (root / "clean").mkdir()
+    for v in scene.views:  # clean/ keeps the original; images/ gets a dark veil (the "degraded" input)
+        img = read_image(root / "images" / v.name)
+        cv2.imwrite(str(root / "clean" / v.name), cv2.cvtColor((img * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(root / "images" / v.name),
+                    cv2.cvtColor((img * 127).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
+    res = GaussianTrainer(load_scene(root), _cfg(), tmp_path / "run", seed=0, progress=False).train()
+    assert res["eval_reference"] == "clean"
+    name = scene.test_views[0].name
+    render = read_image(tmp_path / "run" / "renders" / "test" / (scene.test_views[0].stem + ".png"))
+    for ref, key in (("clean", "clean"), ("images", "input")):
+        gt = read_image(root / ref / name)
+        value = 10 * np.log10(1.0 / np.mean((render - gt) ** 2))
+        if key == "clean":
+            assert res["per_view"][name]["psnr"] == pytest.approx(value, abs=0.05)
+        else:
+            assert abs(res["per_view"][name]["psnr"] - value) > 1.0  # not scored against the degraded input
+    plain = GaussianTrainer(scene, _cfg(), tmp_path / "plain", seed=0, progress=False).train()
+    assert plain["eval_reference"] == "input"

@@ -90,7 +90,8 @@ def _main(argv: Sequence[str] | None) -> int:
         trainer = method.trainer()(scene, config, out, seed=args.seed, scene_path=args.scene,
                                    progress=not args.quiet, device=device, scene_load_args=load_args)
     results = trainer.train()
-    print(f"{results['method']}: {results['eval_split']} PSNR {results['psnr']:.2f} dB, "
+    against = " (against clean/)" if results.get("eval_reference") == "clean" else ""
+    print(f"{results['method']}: {results['eval_split']} PSNR{against} {results['psnr']:.2f} dB, "
           f"SSIM {results['ssim']:.4f}, {results['num_gaussians']} Gaussians, "
           f"{results['train_time_s']:.1f} s -> {trainer.out}")
     return 0

@@ -28,13 +28,14 @@ import time
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 from tqdm import tqdm
 
 import nimbus
 from nimbus.data import Scene, View
-from nimbus.data.images import write_image
+from nimbus.data.images import read_image, write_image
 from nimbus.errors import NimbusError
 from nimbus.losses import photometric_loss, psnr, ssim
 from nimbus.render.gaussians import GaussianInitConfig, Gaussians, init_from_scene
@@ -149,6 +150,10 @@ class GaussianTrainer:
         """The training loss for one view; ``render`` has ``rgb``, ``depth``, ``alpha`` and ``meta``."""
         return photometric_loss(render["rgb"], gt, self.cfg.lambda_dssim)
 
+    def training_prediction(self, render: dict) -> torch.Tensor:
+        """What the last loss compared with the training image (the progress bar's PSNR)."""
+        return render["rgb"]
+
     def before_step(self, view_index: int, render: dict) -> None:
         """Called after ``backward`` and the densification statistics, before the optimiser step."""
 
@@ -254,7 +259,7 @@ class GaussianTrainer:
                 self.after_step(it)
                 with torch.no_grad():
                     lv = float(loss)
-                    pv = psnr(render["rgb"], gt)
+                    pv = psnr(self.training_prediction(render), gt)
                 loss_ema = lv if loss_ema is None else 0.9 * loss_ema + 0.1 * lv
                 psnr_ema = pv if psnr_ema is None else 0.9 * psnr_ema + 0.1 * pv
                 if it % c.log_interval == 0 or it == c.iterations:
@@ -339,6 +344,7 @@ class GaussianTrainer:
         """Render the test views (or the training views if there are none), save them, and score them."""
         views = self.scene.test_views or self.scene.train_views
         split = "test" if self.scene.test_views else "train"
+        reference = "clean" if all(self._clean_path(v) is not None for v in views) else "input"
         per_view = {}
         render_times = []
         for view in views:
@@ -348,11 +354,22 @@ class GaussianTrainer:
             # Scored after the 8-bit round trip that the saved PNGs (and the benchmark) go through.
             pred = quantize_8bit(self.eval_image(view, render))
             write_image(self.out / "renders" / split / f"{view.stem}.png", pred.cpu().numpy())
-            gt = quantize_8bit(torch.from_numpy(view.load_image()).to(pred))
+            gt_image = read_image(self._clean_path(view)) if reference == "clean" else view.load_image()
+            if gt_image.shape != tuple(pred.shape):  # a downscaled load (images_<d>/): clean/ is full size
+                gt_image = cv2.resize(gt_image, (pred.shape[1], pred.shape[0]), interpolation=cv2.INTER_AREA)
+            gt = quantize_8bit(torch.from_numpy(gt_image).to(pred))
             per_view[view.name] = {"psnr": psnr(pred, gt), "ssim": float(ssim(pred, gt))}
         mean = {k: float(np.mean([v[k] for v in per_view.values()])) for k in ("psnr", "ssim")}
         fps = len(render_times) / max(sum(render_times), 1e-9)
-        return {"split": split, "per_view": per_view, "render_fps": fps, **mean}
+        return {"split": split, "reference": reference, "per_view": per_view, "render_fps": fps, **mean}
+
+    def _clean_path(self, view: View) -> Path | None:
+        """``SCENE/clean/<name>`` of a dataset written by ``nimbus-synth degrade`` (its ``images/`` are the
+        degraded inputs, so a score against them rewards reproducing the weather), else None."""
+        if self.scene.root is None:
+            return None
+        path = Path(self.scene.root) / "clean" / view.name
+        return path if path.is_file() else None
 
     def finish(self) -> dict:
         g = self.gaussians().detach()
@@ -363,7 +380,7 @@ class GaussianTrainer:
             "method": self.method_name, "scene": self.scene_path, "seed": self.seed,
             "iterations": self.iteration, "train_time_s": round(self.train_time, 3),
             "peak_memory_mb": round(peak_memory_mb(self.device), 1), "num_gaussians": len(self.params),
-            "eval_split": ev["split"], "psnr": ev["psnr"], "ssim": ev["ssim"], "render_fps": ev["render_fps"],
+            "eval_split": ev["split"], "eval_reference": ev["reference"], "psnr": ev["psnr"], "ssim": ev["ssim"], "render_fps": ev["render_fps"],
             "per_view": ev["per_view"], "device": str(self.device), "nimbus_version": nimbus.__version__,
             **self.extra_results(),
         }
