@@ -32,6 +32,7 @@ M_init in {1k, 2k, 4k, 10k, 15k}  ``m_init=...`` (:func:`paper_m_init` scales it
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 from nimbus.errors import NimbusError
@@ -99,6 +100,12 @@ class NimbusConfig(TrainConfig):
         Std of the initial voxel features, mean 0 (paper: 0.01).
     box_scale : float
         The grid spans the Gaussian centres' AABB enlarged by this factor about its centre (paper: 2).
+    box_content_factor : float
+        Centres farther from the mean training camera centre than this many times their
+        median distance are backdrop (hills, sky dome) and left out of that AABB; rays to
+        them end at the box exit (ours; 0 keeps every centre, as the paper).  A backdrop
+        at 90 m around a 3 m garden would otherwise stretch the grid 30 times, leaving the
+        content a few voxels and the backdrop rays almost no transmission.
     ray_samples : int
         K, uniform samples per ray between the near bound and the surface (paper: 64).
     init_transmission : float
@@ -106,6 +113,14 @@ class NimbusConfig(TrainConfig):
         paper does not say).  Starting light (0.7) and letting the medium thicken beat
         starting at the dark-channel estimate of dense haze in our runs; 0 uses that
         estimate (:mod:`nimbus.nimbusgs.auto`).
+    init_dehaze : bool
+        Start the Gaussians' colours at ``(c - A0 (1 - T0)) / max(T0, 0.1)``: the sparse
+        points' colours ``c`` seen through the initial medium (transmission ``T0`` from the
+        cameras that see the point, airlight ``A0`` the views' dark-channel estimate)
+        inverted, so the first degraded render reproduces the inputs and the clean render
+        starts dehazed (ours).  SfM on hazy photos gives hazy colours, and a clean render
+        that starts hazy is a solution the photometric loss cannot tell from the clean one
+        (T -> 1, P -> 0); only L_DCP moves it, and slowly.
     lr_extinction : float
         Adam learning rate of the grid features and of the log density scale (paper: 5e-3).
     surface_alpha_min : float
@@ -139,6 +154,13 @@ class NimbusConfig(TrainConfig):
         Temperature of the soft minimum over colour channels (released code: 0.1).
     dcp_stage2 : bool
         Keep L_DCP in stage 2 (the paper's "w/ DCP (stage 2)" variant).
+    dcp_surface_only : bool
+        Apply L_DCP only where the march reaches the rendered surface (accumulated alpha
+        >= ``surface_alpha_min``, surface inside the box); ours, the paper applies it to
+        every pixel.  On sky and backdrop pixels the dark-channel prior is false (a
+        clear sky is bright in every channel) and, with nothing else fixing T there, it
+        drives T to 0 and leaves the clean render unconstrained (He et al. bound t by
+        0.1 for the same reason).
     lambda_tv : float
         Weight of L_TV = mean |grad beta| over the grid (released code: 1; 0 = "w/o TV").
 
@@ -204,8 +226,10 @@ class NimbusConfig(TrainConfig):
     grid_resolution: int = 128
     grid_init_std: float = 0.01
     box_scale: float = 2.0
+    box_content_factor: float = 4.0
     ray_samples: int = 64
     init_transmission: float = 0.7
+    init_dehaze: bool = True
     lr_extinction: float = 5e-3
     surface_alpha_min: float = 0.5
     surface_depth_grad: bool = False
@@ -220,6 +244,7 @@ class NimbusConfig(TrainConfig):
     dcp_patch: int = 15
     dcp_temperature: float = 0.1
     dcp_stage2: bool = False
+    dcp_surface_only: bool = True
     lambda_tv: float = 1.0
     # PLM
     residual_source: str = "render"
@@ -259,6 +284,9 @@ class NimbusConfig(TrainConfig):
             raise NimbusError(f"airlight_sh_degree must be in 0..3, got {self.airlight_sh_degree}")
         if not 0.0 <= self.init_transmission < 1.0:
             raise NimbusError(f"init_transmission must be in [0, 1) (0: estimate), got {self.init_transmission}")
+        if self.box_content_factor != 0 and not 1.0 <= self.box_content_factor < math.inf:
+            raise NimbusError(f"box_content_factor must be 0 (keep every centre) or a finite value >= 1, "
+                              f"got {self.box_content_factor}")
         if self.box_scale < 1.0:
             raise NimbusError(f"box_scale must be >= 1 (the box must hold the Gaussians), got {self.box_scale}")
         if not 0.0 < self.surface_alpha_min <= 1.0:

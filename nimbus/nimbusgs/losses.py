@@ -32,14 +32,18 @@ def soft_dark_channel(image: Tensor, patch: int, temperature: float) -> Tensor:
 DCP_FORMS = ("l1", "squared")
 
 
-def dcp_loss(clean: Tensor, patch: int, temperature: float, form: str = "l1") -> Tensor:
+def dcp_loss(clean: Tensor, patch: int, temperature: float, form: str = "l1", mask: Tensor | None = None) -> Tensor:
     """The dark-channel prior on the clean render.
 
     ``form="l1"``: ||DCP(I_hat)||_1 as a per-pixel mean (paper Eq. 12); ``"squared"``:
     mean(DCP(I_hat))^2 (the authors' released code), whose pull fades as the dark
-    channel approaches 0.
+    channel approaches 0.  ``mask`` (bool ``[H, W]``) keeps the prior to those pixels;
+    the mean is still over all pixels, so a full mask is the paper's loss.
     """
-    dark = soft_dark_channel(clean, patch, temperature).abs().mean()
+    dark = soft_dark_channel(clean, patch, temperature).abs()
+    if mask is not None:
+        dark = dark * mask.to(dark.dtype)
+    dark = dark.mean()
     return dark * dark if form == "squared" else dark
 
 

@@ -67,6 +67,22 @@ class Box:
         center, half = (lo + hi) / 2, ((hi - lo) / 2 * scale).clamp_min(min_size / 2)
         return cls(tuple((center - half).tolist()), tuple((center + half).tolist()))
 
+    @classmethod
+    def around_content(cls, points: np.ndarray | Tensor, cameras: np.ndarray, scale: float = 2.0,
+                       content_factor: float = 0.0) -> "Box":
+        """:meth:`around` the points that are not backdrop.
+
+        A point is backdrop when its distance from the mean of ``cameras`` (``[C, 3]``
+        centres) exceeds ``content_factor`` times the points' median distance;
+        ``content_factor`` 0 keeps every point (the plain AABB).
+        """
+        p = torch.as_tensor(points, dtype=torch.float64).reshape(-1, 3)
+        if content_factor > 0 and p.shape[0] > 0:
+            centre = torch.as_tensor(np.asarray(cameras, dtype=np.float64).reshape(-1, 3).mean(0))
+            d = torch.linalg.norm(p - centre, dim=1)
+            p = p[d <= content_factor * d.median()]
+        return cls.around(p, scale)
+
     def tensors(self, device=None, dtype=torch.float32) -> tuple[Tensor, Tensor]:
         return (torch.tensor(self.lo, device=device, dtype=dtype), torch.tensor(self.hi, device=device, dtype=dtype))
 
@@ -224,13 +240,29 @@ def march_interval(rays: ViewRays, lo: Tensor, hi: Tensor, depth: Tensor, alpha:
         Below this accumulated alpha the rendered depth is not a surface: march to the box exit.
     """
     entry, exit_ = rays.box_interval(lo, hi)
-    a = alpha.reshape(-1)
-    z = depth.reshape(-1) / a.clamp_min(1e-6)
-    surface = torch.where(a >= alpha_min, z * rays.z_to_distance, exit_)
+    surface = _surface_distance(rays, depth, alpha, alpha_min, exit_)
     t_start = entry.clamp_min(near)
     t_end = torch.minimum(surface, exit_)
     t_end = torch.maximum(t_end, t_start)  # misses and surfaces before the box: empty interval
     return t_start, t_end
+
+
+def _surface_distance(rays: ViewRays, depth: Tensor, alpha: Tensor, alpha_min: float, exit_: Tensor) -> Tensor:
+    a = alpha.reshape(-1)
+    z = depth.reshape(-1) / a.clamp_min(1e-6)
+    return torch.where(a >= alpha_min, z * rays.z_to_distance, exit_)
+
+
+def surface_in_box(rays: ViewRays, lo: Tensor, hi: Tensor, depth: Tensor, alpha: Tensor, alpha_min: float) -> Tensor:
+    """Bool ``[P]``: the pixel's march ends at a rendered surface inside the box.
+
+    False for rays with accumulated alpha below ``alpha_min`` (sky), for surfaces beyond
+    the box exit (a backdrop outside the medium's box) and for rays that miss the box.
+    """
+    entry, exit_ = rays.box_interval(lo, hi)
+    a = alpha.reshape(-1)
+    surface = _surface_distance(rays, depth, alpha, alpha_min, exit_)
+    return (a >= alpha_min) & (surface <= exit_) & (exit_ > entry.clamp_min(0.0))
 
 
 @dataclass

@@ -48,14 +48,16 @@ from nimbus.nimbusgs.particulate import (ResidualStore, ViewGeometry, consistenc
 from nimbus.nimbusgs.restore import RestoreConfig, classical_restore
 from nimbus.nimbusgs.scattering import (Box, ExtinctionGrid, UniformExtinction, ViewRays,
                                         camera_rays, density_scale_for, gaussian_extinction_map, march,
-                                        march_interval)
+                                        march_interval, ray_box_interval, surface_in_box)
 from nimbus.render.gaussians import Gaussians
 from nimbus.render.rasterize import means2d_grad, rasterize
-from nimbus.render.sh import rgb_to_sh
+from nimbus.render.sh import rgb_to_sh, sh_to_rgb
 from nimbus.train.trainer import GaussianTrainer
 
 #: Bounds of the data-driven initial transmission (ours): keeps the initial medium neither absent nor opaque.
 INIT_TRANSMISSION_RANGE = (0.2, 0.95)
+#: ``init_dehaze`` divides by at least this transmission (He et al.'s t0), so far points are not amplified.
+DEHAZE_MIN_TRANSMISSION = 0.1
 #: Voxels per axis of the throw-away grid used to time the ray march a haze-free scene skips.
 _TIMING_GRID = 4
 #: Smallest side of a written extinction slice (pixels); small grids are upsampled (nearest).
@@ -121,6 +123,8 @@ class NimbusTrainer(GaussianTrainer):
         self.time_saved: dict[str, float] = {}
         if self.use_csm:
             self._build_medium(self.params["means"].detach())
+            if c.init_dehaze:
+                self._dehaze_initial_colours()
         elif self.auto:
             self.time_saved["csm_ray_march_s"] = self._estimate_march_time() * c.iterations
         self._pending.append(("csm_decision", {
@@ -140,10 +144,14 @@ class NimbusTrainer(GaussianTrainer):
                 dists.append(float(np.median(np.linalg.norm(front - cam.center, axis=1))))
         return float(np.median(dists)) if dists else 1.0
 
+    def _content_box(self, means: Tensor) -> Box:
+        cameras = np.array([v.camera.center for v in self.train_views])
+        return Box.around_content(means.detach().cpu(), cameras, self.cfg.box_scale, self.cfg.box_content_factor)
+
     def _build_medium(self, means: Tensor, box: Box | None = None) -> None:
         """The extinction field, airlight and their optimiser (CSM)."""
         c = self.cfg
-        self.box = box or Box.around(means.cpu(), c.box_scale)
+        self.box = box or self._content_box(means)
         self._box_tensors = self.box.tensors(self.device)
         t0 = c.init_transmission or min(max(self.haze.transmission_estimate, INIT_TRANSMISSION_RANGE[0]),
                                         INIT_TRANSMISSION_RANGE[1])
@@ -166,11 +174,47 @@ class NimbusTrainer(GaussianTrainer):
         self.initial_transmission = t0
         self.initial_density_scale = scale
 
+    def _initial_transmission(self, points: Tensor) -> Tensor:
+        """``[N]`` transmission of the initial medium from the training cameras to ``points``: the median over
+        the cameras that see a point (in front, inside the image), through the box only."""
+        lo, hi = (x.double().cpu() for x in self._box_tensors)
+        beta0 = math.log(2.0) * self.initial_density_scale  # softplus(0) * scale: the initial features are ~0
+        pts = points.detach().double().cpu()
+        taus = torch.full((len(self.train_views), pts.shape[0]), float("nan"), dtype=torch.float64)
+        for k, view in enumerate(self.train_views):
+            cam = view.camera
+            uv, z = cam.project(pts.numpy())
+            seen = torch.as_tensor((z > self.cfg.near_plane) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width)
+                                   & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height))
+            origin = torch.as_tensor(cam.center, dtype=torch.float64)
+            vec = pts - origin
+            dist = vec.norm(dim=1).clamp_min(1e-12)
+            entry, exit_ = ray_box_interval(origin, vec / dist[:, None], lo, hi)
+            length = (torch.minimum(dist, exit_) - entry.clamp_min(self.cfg.near_plane)).clamp_min(0.0)
+            taus[k] = torch.where(seen, beta0 * length, torch.nan)
+        tau = taus.nanmedian(dim=0).values
+        tau = torch.where(torch.isnan(tau), torch.zeros_like(tau), tau)  # seen by no camera: leave the colour
+        return torch.exp(-tau).float()
+
+    @torch.no_grad()
+    def _dehaze_initial_colours(self) -> None:
+        """Start the Gaussians' colours at the clean colours the initial medium implies (``init_dehaze``)."""
+        if self.field is None and self.ext_log_scale is None:
+            return
+        dc = self.params.tensors["sh_dc"]
+        T0 = self._initial_transmission(self.params.tensors["means"]).to(dc)[:, None]
+        a0 = self.descriptors[:, :3].mean(0).to(dc)
+        rgb = sh_to_rgb(dc[:, 0])
+        clean = ((rgb - a0 * (1 - T0)) / T0.clamp_min(DEHAZE_MIN_TRANSMISSION)).clamp(0.0, 1.0)
+        dc[:, 0] = rgb_to_sh(clean)
+        self._pending.append(("init_dehaze", {"mean_transmission": round(float(T0.mean()), 4),
+                                              "airlight": [round(float(x), 4) for x in a0]}))
+
     def _estimate_march_time(self) -> float:
         """Seconds of one training view's ray march (forward + backward), timed on a throw-away coarse grid."""
         view = self.train_views[0]
         cam = view.camera
-        box = Box.around(self.params["means"].detach().cpu(), self.cfg.box_scale)
+        box = self._content_box(self.params["means"].detach())
         grid = ExtinctionGrid(box, _TIMING_GRID, 0.01, 0.01).to(self.device)
         rays = camera_rays(cam, self.device)
         depth = torch.full((cam.height, cam.width), 1.0, device=self.device)
@@ -209,8 +253,9 @@ class NimbusTrainer(GaussianTrainer):
                                  backend=self.cfg.backend, config=self.raster_config)
         return rgb[..., 0]
 
-    def medium(self, view: View, rays: ViewRays, render: dict, descriptor: Tensor) -> tuple[Tensor, Tensor]:
-        """``(T [H, W, 1], P [H, W, 3])`` of one view's continuous medium (CSM)."""
+    def medium(self, view: View, rays: ViewRays, render: dict, descriptor: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``(T [H, W, 1], P [H, W, 3], covered [H, W])`` of one view's continuous medium (CSM); ``covered``
+        marks the pixels whose march ends at a surface inside the box (:func:`surface_in_box`)."""
         c = self.cfg
         t0 = time.perf_counter()
         depth, alpha = render["depth"], render["alpha"]
@@ -226,16 +271,17 @@ class NimbusTrainer(GaussianTrainer):
         h, w = rays.height, rays.width
         T = res.transmission.reshape(h, w, 1)
         P = (res.scatter[:, None] * a).reshape(h, w, 3)
+        covered = surface_in_box(rays, lo, hi, depth, alpha, c.surface_alpha_min).reshape(h, w)
         self.timing["csm_forward_s"] += time.perf_counter() - t0
-        return T, P
+        return T, P, covered
 
     def compose(self, vi: int, render: dict) -> dict[str, Tensor]:
         """``I_hat``, ``T``, ``P`` and ``I_con`` of training view ``vi`` for a render of it."""
         clean = render["rgb"]
         if not self.use_csm:
             return {"clean": clean, "T": torch.ones_like(clean[..., :1]), "P": torch.zeros_like(clean), "con": clean}
-        T, P = self.medium(self.train_views[vi], self._rays_for(vi), render, self.descriptors[vi])
-        return {"clean": clean, "T": T, "P": P, "con": clean * T + P}
+        T, P, covered = self.medium(self.train_views[vi], self._rays_for(vi), render, self.descriptors[vi])
+        return {"clean": clean, "T": T, "P": P, "con": clean * T + P, "covered": covered}
 
     # --- hooks --------------------------------------------------------------------------
     def compute_loss(self, view_index: int, render: dict, gt: Tensor) -> Tensor:
@@ -254,11 +300,17 @@ class NimbusTrainer(GaussianTrainer):
         loss = stage_loss(pred, gt, c.lambda_dssim)
         if self.use_csm:
             if c.lambda_dcp > 0 and (self.stage == 1 or c.dcp_stage2):
-                loss = loss + c.lambda_dcp * dcp_loss(parts["clean"], c.dcp_patch, c.dcp_temperature, c.dcp_form)
+                mask = parts["covered"] if c.dcp_surface_only else None
+                loss = loss + c.lambda_dcp * dcp_loss(parts["clean"], c.dcp_patch, c.dcp_temperature, c.dcp_form,
+                                                      mask)
             if c.lambda_tv > 0 and self.field is not None:
                 loss = loss + c.lambda_tv * self.field.tv()
         self._last = (pred.detach(), gt)
         return loss
+
+    def training_prediction(self, render: dict) -> Tensor:
+        """The degraded render ``I_con (+ R)`` the loss compared, not the clean ``I_hat``."""
+        return self._last[0] if self._last is not None else render["rgb"]
 
     def before_step(self, view_index: int, render: dict) -> None:
         if self.stage != 2 or not self.use_ggs or self._last is None:
