@@ -290,3 +290,42 @@ def test_nimbus_beats_3dgs_on_degraded_views(setting, hazy, rainy, tmp_path):
     assert nimbus["components"] == expected
     # Measured margins: about +4.8 dB (haze) and +1.5 dB (streaks).
     assert nimbus["psnr"] > gs["psnr"] + (3.0 if setting == "haze" else 0.5)
+
+
+def test_initial_colours_are_dehazed_through_the_initial_medium(hazy, tmp_path):
+    """init_dehaze: colour = (c - A0 (1 - T0)) / max(T0, 0.1), T0 the initial medium's transmission from the
+    cameras that see the Gaussian (median), through the box."""
+    from nimbus.render.sh import sh_to_rgb
+
+    plain = NimbusTrainer(hazy, _cfg(init_dehaze=False), tmp_path / "plain", seed=0, progress=False)
+    dehazed = NimbusTrainer(hazy, _cfg(init_dehaze=True), tmp_path / "dehazed", seed=0, progress=False)
+    means = plain.params.tensors["means"].detach().double()
+    beta0 = math.log(2.0) * plain.initial_density_scale
+    lo, hi = (np.array(b) for b in (plain.box.lo, plain.box.hi))
+    checked = 0
+    for i in range(0, means.shape[0], max(1, means.shape[0] // 25)):
+        p = means[i].numpy()
+        if not ((p > lo) & (p < hi)).all():
+            continue
+        taus = []
+        for v in plain.train_views:
+            cam = v.camera
+            uv, z = cam.project(p[None])
+            if z[0] > plain.cfg.near_plane and 0 <= uv[0, 0] < cam.width and 0 <= uv[0, 1] < cam.height:
+                # Inside a convex box with the camera inside too, the whole segment past the near bound counts.
+                if ((cam.center > lo) & (cam.center < hi)).all():
+                    taus.append(beta0 * (np.linalg.norm(p - cam.center) - plain.cfg.near_plane))
+        if not taus:
+            continue
+        T0 = math.exp(-float(torch.tensor(taus).median()))  # torch's median: the lower middle, as nanmedian
+        a0 = plain.descriptors[:, :3].mean(0).double()
+        c = sh_to_rgb(plain.params.tensors["sh_dc"][i, 0].double())
+        expected = ((c - a0 * (1 - T0)) / max(T0, 0.1)).clamp(0, 1)
+        got = sh_to_rgb(dehazed.params.tensors["sh_dc"][i, 0].double())
+        torch.testing.assert_close(got, expected, atol=2e-4, rtol=0)
+        checked += 1
+    assert checked >= 5
+    # The dehazed start is darker than the hazy colours (haze adds airlight).
+    mean_rgb = {k: float(sh_to_rgb(t.params.tensors["sh_dc"].detach()).mean()) for k, t in (("plain", plain),
+                                                                                          ("dehazed", dehazed))}
+    assert mean_rgb["dehazed"] < mean_rgb["plain"] - 0.02
