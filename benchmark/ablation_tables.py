@@ -558,7 +558,7 @@ def ablations_csv(tables: Sequence[AblationTable]) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["table", "paper_label", "preset", "block", "weather", "variant", "method", "scene", *METRICS,
-                *(f"{k}_mark" for k in METRICS), "runs", "ssim_protocol", "lpips"])
+                *(f"{k}_mark" for k in METRICS), "runs", "ssim_protocol", "lpips_net"])
     for t in tables:
         for bi, block in enumerate(t.blocks):
             groups = [*t.scenes.get(bi, []), AVERAGE] if t.groups == [AVERAGE] else t.groups

@@ -288,7 +288,7 @@ def to_csv(tables: Sequence[ComparisonTable]) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["weather", "method", "scene", *METRICS, *(f"{k}_mark" for k in METRICS), "seeds",
-                "ssim_protocol", "lpips"])
+                "ssim_protocol", "lpips_net"])
     for t in tables:
         for g in t.groups:
             marks = {k: t.marks(g, k) for k in METRICS}

@@ -168,7 +168,10 @@ def test_runtime_values_and_text(built):
 
 def test_ablations_csv(built):
     tables = [t for k, t in built[0].items() if k != "runtime"]
-    rows = list(csv.DictReader(io.StringIO(ablations_csv(tables))))
+    text = ablations_csv(tables)
+    header = text.splitlines()[0].split(",")
+    assert len(header) == len(set(header)) and "lpips_net" in header, header
+    rows = list(csv.DictReader(io.StringIO(text)))
     ours = [r for r in rows if r["table"] == "ablation_components" and r["weather"] == "H" and r["variant"] == "Ours"]
     assert [r["scene"] for r in ours] == ["garden", "street", "Average"]
     assert float(ours[-1]["psnr"]) == pytest.approx(22.0) and ours[-1]["psnr_mark"] == "best"
