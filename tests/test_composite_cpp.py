@@ -387,6 +387,32 @@ def test_stale_build_lock_is_removed(tmp_path):
     assert not lock.exists()
 
 
+def test_a_killed_build_does_not_make_later_loads_wait_forever(tmp_path, capsys, monkeypatch):
+    lock = tmp_path / "lock"
+    lock.write_text("")
+    obj = tmp_path / "composite.o"
+    obj.write_text("")
+    old = lock.stat().st_mtime - 10.0
+    for f in (lock, obj):  # nothing in the folder has changed for 10 s: its build was killed
+        os.utime(f, (old, old))
+    composite_cpp._wait_for_build(str(tmp_path), idle_s=5.0, poll_s=0.01)
+    assert not lock.exists() and "stale compiler lock" in capsys.readouterr().err
+    # A build in progress keeps writing: its lock is left alone until it goes.
+    lock.write_text("")
+    seen = []
+    sleep = composite_cpp.time.sleep
+
+    def release_on_second_poll(s):
+        seen.append(s)
+        if len(seen) == 2:
+            lock.unlink()
+        sleep(0)
+
+    monkeypatch.setattr(composite_cpp.time, "sleep", release_on_second_poll)
+    composite_cpp._wait_for_build(str(tmp_path), idle_s=5.0, poll_s=0.01)
+    assert len(seen) == 2 and not lock.exists() and capsys.readouterr().err == ""
+
+
 def test_build_failure_falls_back_with_one_warning(monkeypatch):
     saved = dict(composite_cpp._state)
 

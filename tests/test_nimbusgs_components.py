@@ -18,7 +18,8 @@ from nimbus.nimbusgs.particulate import (ResidualStore, ViewGeometry, consistenc
                                          is_refresh_step, neighbours, particle_mask)
 from nimbus.nimbusgs.restore import classical_restore
 from nimbus.nimbusgs.scattering import (Box, ExtinctionGrid, UniformExtinction, camera_rays, density_scale_for,
-                                        gaussian_extinction_map, march, march_interval, ray_box_interval)
+                                        gaussian_extinction_map, march, march_interval, ray_box_interval,
+                                        surface_in_box)
 
 
 def _camera(width=16, height=12, eye=(0.0, 0.0, 0.0), target=(0.0, 0.0, 1.0), up=(0.0, -1.0, 0.0)):
@@ -143,6 +144,35 @@ def test_box_is_the_aabb_enlarged_about_its_centre():
     assert box.lo == pytest.approx((-1.0, -2.0, -3.0)) and box.hi == pytest.approx((3.0, 6.0, 9.0))
     flat = Box.around(np.zeros((3, 3)), 2.0)  # degenerate cloud: still a (small) box
     assert all(h > l for l, h in zip(flat.lo, flat.hi))
+
+
+def test_content_box_leaves_out_the_backdrop():
+    rng = np.random.default_rng(0)
+    content = rng.uniform(-2, 2, (500, 3))
+    backdrop = rng.normal(size=(60, 3))
+    backdrop = backdrop / np.linalg.norm(backdrop, axis=1, keepdims=True) * 90.0  # a 90 m dome
+    points = np.concatenate([content, backdrop])
+    cameras = np.array([[0.0, 0, 0], [0.5, 0, 0]])
+    box = Box.around_content(points, cameras, 2.0, content_factor=4.0)
+    plain = Box.around(content, 2.0)
+    assert box.lo == pytest.approx(plain.lo) and box.hi == pytest.approx(plain.hi)
+    everything = Box.around_content(points, cameras, 2.0, content_factor=0.0)  # 0: the paper's AABB
+    assert max(everything.hi) > 150 and everything == Box.around(points, 2.0)
+
+
+def test_surface_in_box_marks_rays_that_end_at_a_surface_inside():
+    cam = _camera()
+    rays = camera_rays(cam)
+    lo, hi = torch.tensor([-5.0, -5.0, -1.0]), torch.tensor([5.0, 5.0, 6.0])
+    shape = (cam.height, cam.width)
+    near = surface_in_box(rays, lo, hi, torch.full(shape, 3.0), torch.ones(shape), 0.5)
+    assert bool(near.all())  # z = 3 lies inside for every pixel of a 60 degree view
+    beyond = surface_in_box(rays, lo, hi, torch.full(shape, 50.0), torch.ones(shape), 0.5)
+    assert not bool(beyond.any())  # a backdrop past the box exit
+    sky = surface_in_box(rays, lo, hi, torch.full(shape, 0.1), torch.full(shape, 0.05), 0.5)
+    assert not bool(sky.any())  # too little accumulated alpha to be a surface
+    missed = surface_in_box(rays, lo + 100, hi + 100, torch.full(shape, 3.0), torch.ones(shape), 0.5)
+    assert not bool(missed.any())
 
 
 # --- airlight -----------------------------------------------------------------------------
@@ -288,6 +318,16 @@ def test_dark_channel_loss():
     rgb = torch.tensor([[[0.2, 0.5, 0.9]]])
     soft = float(soft_dark_channel(rgb, 1, 0.1))
     assert 0.2 <= soft < 0.5 and float(soft_dark_channel(rgb, 1, 0.0)) == pytest.approx(0.2)
+    # A mask keeps the prior to its pixels; the mean stays over all pixels (a full mask is the paper's loss).
+    img = torch.full((9, 9, 3), 0.6, requires_grad=True)
+    full = torch.ones(9, 9, dtype=torch.bool)
+    assert float(dcp_loss(img, 3, 0.1, mask=full)) == pytest.approx(float(dcp_loss(img, 3, 0.1)))
+    half = full.clone()
+    half[:, 5:] = False  # e.g. sky on the right
+    loss = dcp_loss(img, 1, 0.0, mask=half)
+    assert float(loss) == pytest.approx(0.6 * 45 / 81)
+    loss.backward()
+    assert float(img.grad[:, 5:].abs().max()) == 0.0 and float(img.grad[:, :5].abs().sum(-1).min()) > 0
 
 
 def test_classical_restore_removes_thin_streaks():

@@ -3,8 +3,10 @@
 A drop-in replacement for :func:`nimbus.render.composite_torch.composite` (same
 positional signature, rules and outputs), built from ``nimbus/render/_cpp/composite.cpp``
 with :func:`torch.utils.cpp_extension.load` on first use and cached: in
-``$NIMBUS_EXT_DIR/<name>`` when that variable is set, else in torch's extension
-directory (``$TORCH_EXTENSIONS_DIR`` or ``~/.cache/torch_extensions``).  The first build
+``$NIMBUS_EXT_DIR/<name>_<tree>`` when that variable is set, else in torch's extension
+directory (``$TORCH_EXTENSIONS_DIR`` or ``~/.cache/torch_extensions``), ``<tree>`` a hash
+of this source folder so that two checkouts never share (and rebuild over) one build.
+A build lock left by a killed build is removed once its folder has been idle for 3 minutes.  The first build
 takes about 10-15 s (g++ and ninja); later processes only load the cached library, and
 an edited source is rebuilt.
 
@@ -48,7 +50,9 @@ thread count.
 
 from __future__ import annotations
 
+import hashlib
 import os
+import sys
 import threading
 import time
 import warnings
@@ -75,6 +79,13 @@ _LDFLAGS = ("-fopenmp",)
 # torch's build lock is a plain file that a killed build leaves behind, after which every
 # later load would wait forever; a build takes well under a minute, so an older lock is stale.
 _STALE_LOCK_S = 600.0
+# A build in progress writes its object files; a lock with nothing in the folder touched for
+# this long is stale even if the lock itself is younger than _STALE_LOCK_S.
+_IDLE_BUILD_S = 180.0
+_LOCK_POLL_S = 0.5
+# Each source tree gets its own build folder: two checkouts (a CI clone, a second worktree)
+# sharing one would rebuild over each other on every load, and kill each other's builds.
+_TREE_TAG = hashlib.sha1(str(Path(__file__).resolve().parent).encode()).hexdigest()[:8]
 
 _lock = threading.Lock()
 _state: dict = {"tried": False, "ok": False, "error": None, "warned": False}
@@ -89,19 +100,45 @@ def _clear_stale_lock(build_dir: str) -> None:
         pass
 
 
+def _last_activity(build_dir: str) -> float:
+    """Newest modification time of anything in ``build_dir`` (0 when it cannot be read)."""
+    try:
+        with os.scandir(build_dir) as it:
+            return max((e.stat().st_mtime for e in it), default=0.0)
+    except OSError:
+        return 0.0
+
+
+def _wait_for_build(build_dir: str, idle_s: float = _IDLE_BUILD_S, poll_s: float = _LOCK_POLL_S) -> None:
+    """Wait while another process holds the build lock; remove it once the folder has been idle for
+    ``idle_s`` (its build was killed: torch would otherwise wait for it forever)."""
+    lock = os.path.join(build_dir, "lock")
+    while os.path.exists(lock):
+        if time.time() - _last_activity(build_dir) > idle_s:
+            try:
+                os.remove(lock)
+                print(f"nimbus: removed a stale compiler lock left by an interrupted build in {build_dir}",
+                      file=sys.stderr)
+            except OSError:
+                pass
+            return
+        time.sleep(poll_s)
+
+
 def _build() -> None:
     from torch.utils import cpp_extension
 
     if os.environ.get("NIMBUS_EXT_DIR"):
-        build_dir = os.path.join(os.environ["NIMBUS_EXT_DIR"], _NAME)
+        build_dir = os.path.join(os.environ["NIMBUS_EXT_DIR"], f"{_NAME}_{_TREE_TAG}")
     else:
         try:  # torch's default location (a private helper: tolerate its absence)
-            build_dir = cpp_extension._get_build_directory(_NAME, verbose=False)
+            build_dir = cpp_extension._get_build_directory(_NAME, verbose=False) + f"_{_TREE_TAG}"
         except (AttributeError, TypeError):
             build_dir = None
     if build_dir is not None:
         os.makedirs(build_dir, exist_ok=True)
         _clear_stale_lock(build_dir)
+        _wait_for_build(build_dir)
     cpp_extension.load(
         name=_NAME,
         sources=[str(p) for p in _SOURCES],
