@@ -143,7 +143,7 @@ def test_medium_is_the_same_with_the_compiled_and_the_torch_march(hazy, tmp_path
     for backend in ("auto", "torch"):  # auto: the compiled march; torch: grid_sample
         t.cfg = dataclasses.replace(t.cfg, backend=backend)
         t.field.zero_grad(set_to_none=True)
-        T, P, _ = t.medium(t.train_views[0], t._rays_for(0), render, t.descriptors[0])
+        T, P = t.medium(t.train_views[0], t._rays_for(0), render, t.descriptors[0])
         (T.sum() + P.sum()).backward()
         out[backend] = (T.detach(), P.detach(), t.field.features.grad.clone(), t.field.log_scale.grad.clone())
     assert len(calls) == 1  # the auto pass, not the torch one

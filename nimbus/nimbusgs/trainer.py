@@ -253,9 +253,8 @@ class NimbusTrainer(GaussianTrainer):
                                  backend=self.cfg.backend, config=self.raster_config)
         return rgb[..., 0]
 
-    def medium(self, view: View, rays: ViewRays, render: dict, descriptor: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """``(T [H, W, 1], P [H, W, 3], covered [H, W])`` of one view's continuous medium (CSM); ``covered``
-        marks the pixels whose march ends at a surface inside the box (:func:`surface_in_box`)."""
+    def medium(self, view: View, rays: ViewRays, render: dict, descriptor: Tensor) -> tuple[Tensor, Tensor]:
+        """``(T [H, W, 1], P [H, W, 3])`` of one view's continuous medium (CSM)."""
         c = self.cfg
         t0 = time.perf_counter()
         depth, alpha = render["depth"], render["alpha"]
@@ -271,17 +270,24 @@ class NimbusTrainer(GaussianTrainer):
         h, w = rays.height, rays.width
         T = res.transmission.reshape(h, w, 1)
         P = (res.scatter[:, None] * a).reshape(h, w, 3)
-        covered = surface_in_box(rays, lo, hi, depth, alpha, c.surface_alpha_min).reshape(h, w)
         self.timing["csm_forward_s"] += time.perf_counter() - t0
-        return T, P, covered
+        return T, P
 
     def compose(self, vi: int, render: dict) -> dict[str, Tensor]:
         """``I_hat``, ``T``, ``P`` and ``I_con`` of training view ``vi`` for a render of it."""
         clean = render["rgb"]
         if not self.use_csm:
             return {"clean": clean, "T": torch.ones_like(clean[..., :1]), "P": torch.zeros_like(clean), "con": clean}
-        T, P, covered = self.medium(self.train_views[vi], self._rays_for(vi), render, self.descriptors[vi])
-        return {"clean": clean, "T": T, "P": P, "con": clean * T + P, "covered": covered}
+        T, P = self.medium(self.train_views[vi], self._rays_for(vi), render, self.descriptors[vi])
+        return {"clean": clean, "T": T, "P": P, "con": clean * T + P}
+
+    def _dcp_mask(self, vi: int, render: dict) -> Tensor:
+        """Pixels of training view ``vi`` whose march ends at a surface inside the box (``dcp_surface_only``)."""
+        rays = self._rays_for(vi)
+        lo, hi = self._box_tensors
+        mask = surface_in_box(rays, lo, hi, render["depth"].detach(), render["alpha"].detach(),
+                              self.cfg.surface_alpha_min)
+        return mask.reshape(rays.height, rays.width)
 
     # --- hooks --------------------------------------------------------------------------
     def compute_loss(self, view_index: int, render: dict, gt: Tensor) -> Tensor:
@@ -300,7 +306,7 @@ class NimbusTrainer(GaussianTrainer):
         loss = stage_loss(pred, gt, c.lambda_dssim)
         if self.use_csm:
             if c.lambda_dcp > 0 and (self.stage == 1 or c.dcp_stage2):
-                mask = parts["covered"] if c.dcp_surface_only else None
+                mask = self._dcp_mask(view_index, render) if c.dcp_surface_only else None
                 loss = loss + c.lambda_dcp * dcp_loss(parts["clean"], c.dcp_patch, c.dcp_temperature, c.dcp_form,
                                                       mask)
             if c.lambda_tv > 0 and self.field is not None:

@@ -6,9 +6,9 @@ with :func:`torch.utils.cpp_extension.load` on first use and cached: in
 ``$NIMBUS_EXT_DIR/<name>_<tree>`` when that variable is set, else in torch's extension
 directory (``$TORCH_EXTENSIONS_DIR`` or ``~/.cache/torch_extensions``), ``<tree>`` a hash
 of this source folder so that two checkouts never share (and rebuild over) one build.
-A build lock left by a killed build is removed once its folder has been idle for 3 minutes.  The first build
-takes about 10-15 s (g++ and ninja); later processes only load the cached library, and
-an edited source is rebuilt.
+A build lock left by a killed build is removed once its folder has been idle for 3
+minutes.  The first build takes about 10-15 s (g++ and ninja); later processes only load
+the cached library, and an edited source is rebuilt.
 
 The same library holds ``_cpp/project.cpp``: :func:`project_and_shade` (projection, SH
 colour and opacity of all Gaussians in one op with a hand-written backward) and
@@ -91,13 +91,18 @@ _lock = threading.Lock()
 _state: dict = {"tried": False, "ok": False, "error": None, "warned": False}
 
 
-def _clear_stale_lock(build_dir: str) -> None:
+def _clear_stale_lock(build_dir: str, idle_s: float = _IDLE_BUILD_S) -> bool:
+    """Remove the build lock when it is older than ``_STALE_LOCK_S`` or nothing in ``build_dir`` has changed
+    for ``idle_s`` (its build was killed); True when this call removed it."""
     lock = os.path.join(build_dir, "lock")
     try:
-        if time.time() - os.path.getmtime(lock) > _STALE_LOCK_S:
+        now = time.time()
+        if now - os.path.getmtime(lock) > _STALE_LOCK_S or now - _last_activity(build_dir) > idle_s:
             os.remove(lock)
+            return True
     except OSError:  # no lock, or another process removed it first
         pass
+    return False
 
 
 def _last_activity(build_dir: str) -> float:
@@ -114,13 +119,9 @@ def _wait_for_build(build_dir: str, idle_s: float = _IDLE_BUILD_S, poll_s: float
     ``idle_s`` (its build was killed: torch would otherwise wait for it forever)."""
     lock = os.path.join(build_dir, "lock")
     while os.path.exists(lock):
-        if time.time() - _last_activity(build_dir) > idle_s:
-            try:
-                os.remove(lock)
-                print(f"nimbus: removed a stale compiler lock left by an interrupted build in {build_dir}",
-                      file=sys.stderr)
-            except OSError:
-                pass
+        if _clear_stale_lock(build_dir, idle_s):
+            print(f"nimbus: removed a stale compiler lock left by an interrupted build in {build_dir}",
+                  file=sys.stderr)
             return
         time.sleep(poll_s)
 
@@ -137,7 +138,6 @@ def _build() -> None:
             build_dir = None
     if build_dir is not None:
         os.makedirs(build_dir, exist_ok=True)
-        _clear_stale_lock(build_dir)
         _wait_for_build(build_dir)
     cpp_extension.load(
         name=_NAME,
