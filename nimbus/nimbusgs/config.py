@@ -45,6 +45,7 @@ EXTINCTIONS = ("grid", "uniform", "gaussian")
 AIRLIGHTS = ("network", "constant", "sh")
 RESIDUAL_SOURCES = ("render", "restored")
 REFRESH_MODES = ("all", "lazy")
+OUTLIER_SCOPES = ("all", "unchecked")
 DCP_FORMS = ("l1", "squared")
 #: The paper's total iteration count; ``paper_m_init`` scales M_init values quoted against it.
 PAPER_ITERATIONS = 30_000
@@ -174,6 +175,15 @@ class NimbusConfig(TrainConfig):
         high-passed residual exceeds k robust standard deviations (grown by 1 px), so
         a stage-1 model that is still under-fitted does not have its whole misfit frozen
         into R (pixels absorbed by R give the Gaussians no gradient).
+    residual_outlier_scope : str
+        ``all``: the outlier test applies to every pixel; ``unchecked``: only where the
+        view-consistency test has no usable neighbour (sky, occlusions), the consistency
+        test alone deciding elsewhere.
+    residual_tophat : float
+        Caps R by the input's white top-hat with a structuring element of this fraction of
+        the image width (ours, default 0.03; 0 = off, the paper): particles are small bright
+        structures, and without the cap a render that has gone dark over a wide area has
+        the gap absorbed by R at the next refresh and never recovers.
     consistency_neighbours : int
         Training views (nearest camera centres) against which a residual is checked for
         view-inconsistency before it enters R (ours; 0 turns the check off; see
@@ -253,6 +263,8 @@ class NimbusConfig(TrainConfig):
     # PLM
     residual_source: str = "render"
     residual_outlier_sigmas: float = 3.0
+    residual_outlier_scope: str = "unchecked"
+    residual_tophat: float = 0.03
     consistency_neighbours: int = 4
     refresh_interval: int = 100
     refresh_mode: str = "all"
@@ -277,7 +289,8 @@ class NimbusConfig(TrainConfig):
             raise NimbusError(f"m_init (stage-1 iterations) must be in 1..iterations-1 = {self.iterations - 1}, "
                               f"got {self.m_init}")
         for name, allowed in (("extinction", EXTINCTIONS), ("airlight", AIRLIGHTS), ("dcp_form", DCP_FORMS),
-                              ("residual_source", RESIDUAL_SOURCES), ("refresh_mode", REFRESH_MODES)):
+                              ("residual_source", RESIDUAL_SOURCES), ("refresh_mode", REFRESH_MODES),
+                              ("residual_outlier_scope", OUTLIER_SCOPES)):
             if getattr(self, name) not in allowed:
                 raise NimbusError(f"{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
         for name in ("grid_resolution", "ray_samples", "refresh_interval", "dcp_patch", "airlight_hidden"):
@@ -293,6 +306,9 @@ class NimbusConfig(TrainConfig):
                               f"got {self.box_content_factor}")
         if self.box_scale < 1.0:
             raise NimbusError(f"box_scale must be >= 1 (the box must hold the Gaussians), got {self.box_scale}")
+        if not 0.0 <= self.residual_tophat <= 0.5:
+            raise NimbusError(f"residual_tophat must be in [0, 0.5] (a fraction of the image width; 0 = off), "
+                              f"got {self.residual_tophat}")
         if not 0.0 < self.surface_alpha_min <= 1.0:
             raise NimbusError(f"surface_alpha_min must be in (0, 1], got {self.surface_alpha_min}")
         if len(self.ggs_clip) != 2 or not 0.0 <= self.ggs_clip[0] <= 1.0 <= self.ggs_clip[1]:

@@ -44,7 +44,7 @@ from nimbus.nimbusgs.config import NimbusConfig
 from nimbus.nimbusgs.ggs import GGSFactors, ggs_weights, ndc_grad_norm, scale_gradients
 from nimbus.nimbusgs.losses import dcp_loss, stage_loss
 from nimbus.nimbusgs.particulate import (ResidualStore, ViewGeometry, consistency_excess, extract_residual,
-                                         is_refresh_step, neighbours)
+                                         is_refresh_step, neighbours, tophat_window, white_tophat)
 from nimbus.nimbusgs.restore import RestoreConfig, classical_restore
 from nimbus.nimbusgs.scattering import (Box, ExtinctionGrid, UniformExtinction, ViewRays,
                                         camera_rays, density_scale_for, gaussian_extinction_map, march,
@@ -106,6 +106,8 @@ class NimbusTrainer(GaussianTrainer):
         self.box: Box | None = None
         self._box_tensors: tuple[Tensor, Tensor] | None = None
         self.store: ResidualStore | None = None
+        #: Per training view, the input's white top-hat (uint8), the cap of R (filled on first use).
+        self._tophat: dict[int, Tensor] = {}
         self.ggs = GGSFactors(c.ggs_depth, c.ggs_radius, c.ggs_error, c.ggs_r0, tuple(c.ggs_clip))
         forced = c.forced_components
         self.auto = forced is None
@@ -300,7 +302,7 @@ class NimbusTrainer(GaussianTrainer):
             if c.refresh_mode == "lazy" and c.residual_source == "render":
                 point = c.m_init + (it - 1 - c.m_init) // c.refresh_interval * c.refresh_interval
                 if self.store.is_stale(view_index, point):
-                    self.store.set(view_index, extract_residual(gt, pred.detach(), c.residual_outlier_sigmas), it)
+                    self.store.set(view_index, self._residual(view_index, pred.detach()), it)
                     self.counts["lazy_refreshes"] += 1
             pred = pred + self.store.get(view_index)
         loss = stage_loss(pred, gt, c.lambda_dssim)
@@ -382,14 +384,25 @@ class NimbusTrainer(GaussianTrainer):
         others = neighbours([g.camera for g in geometry], c.consistency_neighbours)
         return [consistency_excess(i, self.train_images, geometry, others[i]) for i in range(len(geometry))]
 
+    def _residual(self, vi: int, composite: Tensor, excess: Tensor | None = None) -> Tensor:
+        """R of training view ``vi`` against ``composite`` (I_con), capped by the view's top-hat."""
+        c = self.cfg
+        image = self.train_images[vi]
+        bound = None
+        window = tophat_window(image.shape[1], c.residual_tophat)
+        if window:
+            if vi not in self._tophat:  # from the input alone: computed once, kept as 8 bits
+                self._tophat[vi] = torch.round(white_tophat(image, window).clamp(0, 1) * 255).to(torch.uint8)
+            bound = self._tophat[vi].float() / 255
+        return extract_residual(image, composite, c.residual_outlier_sigmas, excess, bound, c.residual_outlier_scope)
+
     def _refresh_all(self, it: int) -> None:
         if len(self.params) == 0:
             return  # the training loop stops with its own message
         t0 = time.perf_counter()
         cons, geometry = self._composites(it)
         for vi, (con, excess) in enumerate(zip(cons, self._excess(geometry))):
-            self.store.set(vi, extract_residual(self.train_images[vi], con, self.cfg.residual_outlier_sigmas, excess),
-                           it)
+            self.store.set(vi, self._residual(vi, con, excess), it)
         self.store.refreshes += 1
         self.timing["plm_refresh_s"] += time.perf_counter() - t0
 
@@ -419,8 +432,7 @@ class NimbusTrainer(GaussianTrainer):
             self.store = ResidualStore([(v.camera.height, v.camera.width) for v in self.train_views], self.device)
             for vi, img in enumerate(self.train_images):
                 if c.residual_source == "render":
-                    self.store.set(vi, extract_residual(img, composites[vi], c.residual_outlier_sigmas, excesses[vi]),
-                                   it)
+                    self.store.set(vi, self._residual(vi, composites[vi], excesses[vi]), it)
                 else:
                     restored = classical_restore(img, RestoreConfig(patch=c.dcp_patch))
                     self.store.set(vi, extract_residual(img, restored), it)
