@@ -15,7 +15,8 @@ from nimbus.nimbusgs.config import NimbusConfig, paper_m_init, parse_components,
 from nimbus.nimbusgs.ggs import GGSFactors, ggs_weights, robust_normalise, sample_error, scale_gradients
 from nimbus.nimbusgs.losses import dcp_loss, soft_dark_channel
 from nimbus.nimbusgs.particulate import (ResidualStore, ViewGeometry, consistency_excess, extract_residual,
-                                         is_refresh_step, neighbours, particle_mask)
+                                         is_refresh_step, neighbours, particle_mask, tophat_window,
+                                         white_tophat)
 from nimbus.nimbusgs.restore import classical_restore
 from nimbus.nimbusgs.scattering import (Box, ExtinctionGrid, UniformExtinction, camera_rays, density_scale_for,
                                         gaussian_extinction_map, march, march_interval, ray_box_interval,
@@ -242,6 +243,38 @@ def test_view_consistency_separates_particles_from_surface_detail():
     assert torch.isnan(consistency_excess(0, images, unknown, others[0])).all()  # no surface: no verdict
 
 
+def test_faint_inconsistent_particle_enters_r_only_when_consistency_decides():
+    cams, images, geometry = _plane_views()
+    excess = consistency_excess(0, images, geometry, neighbours(cams, 3)[0])
+    composite = images[0].clone()
+    noisy = composite + 0.16 * torch.rand(composite.shape, generator=torch.Generator().manual_seed(0)) - 0.08
+    noisy[8, 20] = 0.95 - 0.08  # the model misfits everywhere by +-0.08 and lacks most of a faint particle:
+    # its 0.08 residual is below 3 robust sigmas of the misfit, but no neighbour sees it
+    strict = particle_mask(images[0], noisy, 3.0, excess, "all")
+    loose = particle_mask(images[0], noisy, 3.0, excess, "unchecked")
+    assert bool(loose[8, 20]) and not bool(strict[8, 20])
+    assert loose.float().mean() < 0.5  # the consistent misfit stays out of R
+    assert loose.sum() >= strict.sum()
+
+
+def test_tophat_caps_the_residual_to_small_bright_structures():
+    assert tophat_window(240, 0.03) == 7 and tophat_window(240, 0.0) == 0 and tophat_window(20, 0.03) == 3
+    img = torch.full((24, 32, 3), 0.4)
+    img[5, 6] = 0.9  # a flake, 1 px
+    img[12:22, 10:30] = 0.8  # a bright wall, wider than the window
+    th = white_tophat(img, 5)
+    torch.testing.assert_close(th[5, 6], torch.full((3,), 0.5))
+    assert float(th[12:22, 10:30].max()) < 1e-6 and float(th[0, :].max()) < 1e-6  # borders: no false structure
+    # A render gone dark over the wall (a hole) and lacking the flake: without the cap the
+    # hole enters R and would never get a gradient; with it only the flake does.
+    composite = torch.full_like(img, 0.4)
+    composite[12:22, 10:30] = 0.0
+    free = extract_residual(img, composite)
+    capped = extract_residual(img, composite, bound=th)
+    assert float(free[15, 20].min()) > 0.7 and float(capped[15, 20].max()) == 0.0
+    torch.testing.assert_close(capped[5, 6], torch.full((3,), 0.5))
+
+
 def test_refresh_cadence():
     steps = [it for it in range(1, 101) if is_refresh_step(it, m_init=40, interval=15)]
     assert steps == [55, 70, 85, 100]
@@ -393,6 +426,10 @@ def test_config_presets_variants_and_validation():
         fast.with_overrides({"extinction": "voxels"})
     with pytest.raises(NimbusError, match="unknown preset"):
         preset("huge")
+    with pytest.raises(NimbusError, match="residual_tophat"):
+        fast.with_overrides({"residual_tophat": "2"})
+    with pytest.raises(NimbusError, match="residual_outlier_scope"):
+        fast.with_overrides({"residual_outlier_scope": "some"})
 
 
 def test_named_methods_are_registered_with_their_settings():
