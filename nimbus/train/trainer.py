@@ -344,17 +344,18 @@ class GaussianTrainer:
         """Render the test views (or the training views if there are none), save them, and score them."""
         views = self.scene.test_views or self.scene.train_views
         split = "test" if self.scene.test_views else "train"
-        reference = "clean" if all(self._clean_path(v) is not None for v in views) else "input"
+        clean = [self._clean_path(v) for v in views]
+        reference = "clean" if all(p is not None for p in clean) else "input"
         per_view = {}
         render_times = []
-        for view in views:
+        for view, clean_path in zip(views, clean):
             t0 = time.perf_counter()
             render = self.render(view)
             render_times.append(time.perf_counter() - t0)
             # Scored after the 8-bit round trip that the saved PNGs (and the benchmark) go through.
             pred = quantize_8bit(self.eval_image(view, render))
             write_image(self.out / "renders" / split / f"{view.stem}.png", pred.cpu().numpy())
-            gt_image = read_image(self._clean_path(view)) if reference == "clean" else view.load_image()
+            gt_image = read_image(clean_path) if reference == "clean" else view.load_image()
             if gt_image.shape != tuple(pred.shape):  # a downscaled load (images_<d>/): clean/ is full size
                 gt_image = cv2.resize(gt_image, (pred.shape[1], pred.shape[0]), interpolation=cv2.INTER_AREA)
             gt = quantize_8bit(torch.from_numpy(gt_image).to(pred))
@@ -380,7 +381,8 @@ class GaussianTrainer:
             "method": self.method_name, "scene": self.scene_path, "seed": self.seed,
             "iterations": self.iteration, "train_time_s": round(self.train_time, 3),
             "peak_memory_mb": round(peak_memory_mb(self.device), 1), "num_gaussians": len(self.params),
-            "eval_split": ev["split"], "eval_reference": ev["reference"], "psnr": ev["psnr"], "ssim": ev["ssim"], "render_fps": ev["render_fps"],
+            "eval_split": ev["split"], "eval_reference": ev["reference"], "psnr": ev["psnr"], "ssim": ev["ssim"],
+            "render_fps": ev["render_fps"],
             "per_view": ev["per_view"], "device": str(self.device), "nimbus_version": nimbus.__version__,
             **self.extra_results(),
         }
