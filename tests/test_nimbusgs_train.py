@@ -273,6 +273,32 @@ def test_cli_trains_a_named_variant(tmp_path):
     assert cfg["method"] == "nimbus-no-ggs" and cfg["config"]["m_init"] == 2
 
 
+def test_cli_components_flag_forces_components_and_rejects_misuse(tmp_path, capsys):
+    import nimbus.nimbusgs.methods  # noqa: F401  (registers the methods)
+    from nimbus.cli.train import _main, main
+
+    base = ["builtin:garden:tiny", "--preset", "tiny", "--set", "iterations=4", "--set", "m_init=2",
+            "--set", "write_decomposition=false", "--quiet"]
+    out = tmp_path / "forced"
+    assert _main([*base, "--method", "nimbus", "--components", "plm,ggs", "--out", str(out)]) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert res["components"] == ["plm", "ggs"] and res["nimbus"]["mode"] != "auto"
+    assert json.loads((out / "config.json").read_text())["config"]["components"] == "plm,ggs"
+    bad = [
+        ([*base, "--method", "3dgs", "--components", "csm"], "applies to NimbusGS methods"),
+        ([*base, "--method", "nimbus", "--components", "csm", "--set", "components=plm"], "once"),
+        ([*base, "--method", "nimbus", "--components", "fog"], "unknown fog"),
+        (["--resume", str(out), "--components", "csm"], "saved settings"),
+    ]
+    for i, (argv, message) in enumerate(bad):
+        target = tmp_path / f"bad{i}"
+        with pytest.raises(SystemExit) as exit_info:
+            main([*argv, "--out", str(target)] if "--resume" not in argv else argv)
+        err = capsys.readouterr().err
+        assert exit_info.value.code != 0 and message in err, err
+        assert not target.exists()
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("setting", ["haze", "particles"])
 def test_nimbus_beats_3dgs_on_degraded_views(setting, hazy, rainy, tmp_path):

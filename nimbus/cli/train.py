@@ -4,6 +4,7 @@ Examples::
 
     nimbus-train builtin:garden:tiny --method 3dgs --preset tiny --out runs/garden-3dgs
     nimbus-train data/garden/H --method 3dgs --preset fast --out runs/g-h --set sh_degree=1 --seed 1
+    nimbus-train data/garden/H+S --method nimbus --components csm,plm,ggs --out runs/g-hs
     nimbus-train --resume runs/garden-3dgs
 """
 
@@ -42,6 +43,9 @@ def build_parser() -> ArgumentParser:
     p.add_argument("--preset", default="fast", help="tiny (CI, seconds), fast (minutes on a CPU), paper (30k its)")
     p.add_argument("--out", help="run directory to create")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field (repeatable)")
+    p.add_argument("--components", metavar="LIST",
+                   help="NimbusGS components: auto (default), none, or a comma list of csm, plm, ggs "
+                        "(same as --set components=LIST)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--downscale", type=int, default=1, help="use images_N of a Mip-NeRF360-style scene")
     p.add_argument("--overwrite", action="store_true", help="replace a non-empty run directory")
@@ -59,6 +63,13 @@ def _main(argv: Sequence[str] | None) -> int:
 
     args = build_parser().parse_args(argv)
     device = torch.device(args.device) if args.device else None
+    if args.resume and (args.components or args.set):
+        raise NimbusError("--resume continues a run with its saved settings; drop --components / --set, "
+                          "or start a new run with --out")
+    if args.components is not None:
+        if any(item.split("=", 1)[0].strip() == "components" for item in args.set or []):
+            raise NimbusError("give the components once: --components LIST or --set components=LIST, not both")
+        args.set = [*(args.set or []), f"components={args.components}"]
     if args.resume:
         run = Path(args.resume)
         cfg_file, ckpt = run / "config.json", run / CHECKPOINT
@@ -78,6 +89,9 @@ def _main(argv: Sequence[str] | None) -> int:
         if not args.scene or not args.out:
             raise NimbusError("give a SCENE and --out RUN (or --resume RUN); see nimbus-train --help")
         method = get_method(args.method)
+        if args.components is not None and not hasattr(method.preset("tiny"), "components"):
+            raise NimbusError(f"--components applies to NimbusGS methods, not {args.method!r}; "
+                              f"use --method nimbus (or a nimbus-* variant)")
         config = method.preset(args.preset).with_overrides(parse_set_args(args.set))
         check_output_dir(args.out, args.overwrite)
         scene = load_scene_arg(args.scene, args.downscale)
