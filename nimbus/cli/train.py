@@ -63,13 +63,9 @@ def _main(argv: Sequence[str] | None) -> int:
 
     args = build_parser().parse_args(argv)
     device = torch.device(args.device) if args.device else None
-    if args.resume and (args.components or args.set):
+    if args.resume and (args.components is not None or args.set):
         raise NimbusError("--resume continues a run with its saved settings; drop --components / --set, "
                           "or start a new run with --out")
-    if args.components is not None:
-        if any(item.split("=", 1)[0].strip() == "components" for item in args.set or []):
-            raise NimbusError("give the components once: --components LIST or --set components=LIST, not both")
-        args.set = [*(args.set or []), f"components={args.components}"]
     if args.resume:
         run = Path(args.resume)
         cfg_file, ckpt = run / "config.json", run / CHECKPOINT
@@ -89,10 +85,16 @@ def _main(argv: Sequence[str] | None) -> int:
         if not args.scene or not args.out:
             raise NimbusError("give a SCENE and --out RUN (or --resume RUN); see nimbus-train --help")
         method = get_method(args.method)
-        if args.components is not None and not hasattr(method.preset("tiny"), "components"):
-            raise NimbusError(f"--components applies to NimbusGS methods, not {args.method!r}; "
-                              f"use --method nimbus (or a nimbus-* variant)")
-        config = method.preset(args.preset).with_overrides(parse_set_args(args.set))
+        base = method.preset(args.preset)
+        overrides = parse_set_args(args.set)
+        if args.components is not None:
+            if not hasattr(base, "components"):
+                raise NimbusError(f"--components applies to NimbusGS methods, not {args.method!r}; "
+                                  f"use --method nimbus (or a nimbus-* variant)")
+            if "components" in overrides:
+                raise NimbusError("give the components once: --components LIST or --set components=LIST, not both")
+            overrides["components"] = args.components
+        config = base.with_overrides(overrides)
         check_output_dir(args.out, args.overwrite)
         scene = load_scene_arg(args.scene, args.downscale)
         out = Path(args.out)
