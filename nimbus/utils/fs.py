@@ -9,11 +9,13 @@ replaced unless they asked for it (``overwrite=True``).
 from __future__ import annotations
 
 import contextlib
+import glob
 import hashlib
 import json
 import os
 import shutil
 import tempfile
+import time
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -46,13 +48,65 @@ def atomic_write_json(path: str | os.PathLike, obj: Any) -> Path:
     return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
 
 
-def check_output_dir(out: str | os.PathLike, overwrite: bool) -> Path:
-    """Refuse a non-empty existing output directory unless ``overwrite``."""
+def confined_path(root: str | os.PathLike, name: str | os.PathLike, what: str = "file") -> Path:
+    """``root / name`` with symlinks resolved, refused unless it lies inside ``root``.
+
+    Every file name that comes from a file (a COLMAP ``images.txt`` name, a ``transforms.json``
+    ``file_path``, a split list, a mask or depth name) goes through here before anything is
+    read from or written to it, so a hostile name such as ``/etc/passwd`` or ``../../x.png``
+    (or a symlink that leads outside) cannot make Nimbus touch files outside the scene or
+    the output folder.
+    """
+    if not isinstance(name, (str, os.PathLike)) or not str(name) or "\x00" in str(name):
+        raise NimbusError(f"invalid {what} name {name!r}: expected a relative path inside {root}")
+    base = Path(root).resolve()
+    path = (base / name).resolve()
+    if path != base and base not in path.parents:
+        raise NimbusError(f"{what} name {str(name)!r} points outside {root}; names must be relative paths "
+                          "inside the folder (no absolute paths, no '..', no links leading out)")
+    return path
+
+
+def refuse_overlap(out: str | os.PathLike, inputs, flag: str = "--out") -> None:
+    """Refuse an output folder that is, contains or lies inside any of ``inputs``.
+
+    A command that replaces (or fills) ``out`` must never delete or write into what it
+    reads: ``--out SCENE --overwrite`` would otherwise remove the scene before failing.
+    ``inputs`` are paths (None entries are skipped).
+    """
+    o = Path(out).resolve()
+    for inp in inputs:
+        if inp is None:
+            continue
+        i = Path(inp).resolve()
+        if o == i or i in o.parents or o in i.parents:
+            rel = "is" if o == i else ("lies inside" if i in o.parents else "contains")
+            raise NimbusError(f"{flag} {out} {rel} the input {inp}; choose an output folder apart from the inputs "
+                              "(nothing was written or deleted)")
+
+
+def check_output_dir(out: str | os.PathLike, overwrite: bool, inputs=(), flag: str = "--out") -> Path:
+    """Refuse an unusable output directory before any work starts.
+
+    Refused: an existing non-empty directory unless ``overwrite``; a path that exists and is
+    not a directory; a path under a file; a folder that cannot be created or written
+    (read-only, no permission); and a folder that is, contains or lies inside any of
+    ``inputs`` (see :func:`refuse_overlap`).  Nothing is created or deleted here.
+    """
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise NimbusError(f"output path {out} exists and is not a directory; choose another --out")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise NimbusError(f"output directory {out} is not empty; pass --overwrite to replace it or choose another --out")
+    refuse_overlap(out, inputs, flag)
+    try:
+        if out.exists() and not out.is_dir():
+            raise NimbusError(f"{flag} {out} exists and is not a directory; choose another {flag}")
+        if out.is_dir() and any(out.iterdir()) and not overwrite:
+            raise NimbusError(f"{flag} {out} is not empty; pass --overwrite to replace it or choose another {flag}")
+        probe = out if out.is_dir() else next((p for p in out.resolve().parents if p.exists()), None)
+    except PermissionError:
+        raise NimbusError(f"{flag} {out} cannot be read (permission denied); choose another {flag}") from None
+    if probe is None or not probe.is_dir():
+        raise NimbusError(f"{flag} {out} lies under {probe}, which is not a directory; choose another {flag}")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise NimbusError(f"{flag} {out} cannot be written ({probe} is read-only or not ours); choose another {flag}")
     return out
 
 
@@ -66,11 +120,15 @@ def atomic_dir(out: str | os.PathLike, overwrite: bool = False) -> Iterator[Path
     overwriting, the old directory is removed only after the new one is complete.
     """
     out = check_output_dir(out, overwrite)
+    # A folder left by a killed run (``.NAME.tmp-*`` whose process is gone) is ours to remove.
+    remove_stale_temps(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
     os.chmod(tmp, 0o755)  # mkdtemp makes 0700; the result should look like any other directory
+    (tmp / ".owner").write_text(str(os.getpid()))
     try:
         yield tmp
+        (tmp / ".owner").unlink(missing_ok=True)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -81,6 +139,47 @@ def atomic_dir(out: str | os.PathLike, overwrite: bool = False) -> Iterator[Path
     os.replace(tmp, out)
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
+
+
+def remove_stale_temps(out: str | os.PathLike) -> list[Path]:
+    """Remove ``.NAME.tmp-*`` / ``.NAME.old-*`` siblings of ``out`` left by a killed process.
+
+    :func:`atomic_dir` names its temporary folder ``.NAME.tmp-<random>`` and records its pid
+    in a ``.owner`` file inside; one whose pid is no longer alive (or that has no owner
+    record and has not been touched for an hour) is a leftover.  Returns what was removed.
+    """
+    out = Path(out)
+    removed = []
+    if not out.parent.is_dir():
+        return removed
+    for p in out.parent.glob(f".{glob.escape(out.name)}.*-*"):
+        if not p.is_dir() or not (p.name.startswith(f".{out.name}.tmp-") or p.name.startswith(f".{out.name}.old-")):
+            continue
+        if _owner_alive(p):
+            continue
+        shutil.rmtree(p, ignore_errors=True)
+        removed.append(p)
+    return removed
+
+
+def _owner_alive(tmp: Path) -> bool:
+    owner = tmp / ".owner"
+    try:
+        pid = int(owner.read_text().strip())
+    except (OSError, ValueError):
+        try:
+            return time.time() - tmp.stat().st_mtime < 3600
+        except OSError:
+            return False
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
