@@ -17,12 +17,23 @@ import numpy as np
 
 from nimbus.data.images import read_image, to_uint8
 from nimbus.errors import NimbusError
+from nimbus.utils.fs import confined_path
 from weather_synth.dataset import MANIFEST
 from weather_synth.settings import ALL_SETTING_NAMES
 
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
 _BACKGROUND = 32
 _TEXT = (235, 235, 235)
+# Tile widths the CLIs accept (pixels): narrower tiles are unreadable, wider ones make sheets of gigabytes.
+MIN_TILE_WIDTH, MAX_TILE_WIDTH = 16, 4096
+
+
+def check_sheet_options(views: int, tile_width: int) -> None:
+    """Refuse a column count or tile width the sheet cannot be drawn with (before any work starts)."""
+    if views < 1:
+        raise NimbusError(f"--views must be at least 1, got {views}")
+    if not MIN_TILE_WIDTH <= tile_width <= MAX_TILE_WIDTH:
+        raise NimbusError(f"--tile-width must be {MIN_TILE_WIDTH} to {MAX_TILE_WIDTH} pixels, got {tile_width}")
 
 
 def _fit(img: np.ndarray, width: int) -> np.ndarray:
@@ -118,8 +129,9 @@ def dataset_contact_sheet(dataset: str | os.PathLike, max_views: int = 6, tile_w
     if unknown:
         raise NimbusError(f"views not in the dataset: {unknown[:5]}; it has {names[:5]}...")
     first = settings[0][1]
-    rows = [("clean", [read_image(first / records[v]["clean"]) for v in views])]
+    # Names come from the manifests, which may come from anyone: read only inside each setting folder.
+    rows = [("clean", [read_image(confined_path(first, records[v]["clean"], "image")) for v in views])]
     for name, folder, m in settings:
         recs = {v["name"]: v for v in m["views"]}
-        rows.append((name, [read_image(folder / recs[v]["image"]) for v in views]))
+        rows.append((name, [read_image(confined_path(folder, recs[v]["image"], "image")) for v in views]))
     return make_contact_sheet(rows, [Path(v).stem for v in views], tile_width)

@@ -50,14 +50,24 @@ So 3DGS, gsplat or nerfstudio train on ``OUT/H+R`` directly and a benchmark
 scores renders against ``clean/``.  Views are processed one at a time (memory
 does not grow with the number of views); every setting folder is written
 atomically (a temporary folder renamed into place when complete), so an
-interrupted run leaves only complete settings.  The same input, config and
-seed give the same bytes.
+interrupted run leaves only complete settings, and a run that fails before
+its first setting is complete leaves no ``OUT`` (nor parent folder) that it
+made.  A temporary folder left by a killed run (``OUT/.SETTING.tmp-*``, whose
+owner process is gone) is removed by the next run.  The same input, config
+and seed give the same bytes.
+
+Every path written is built with :func:`nimbus.utils.fs.confined_path` from
+the temporary folder and the view's name, so no view name (``/abs/t.png``,
+``../../t.png``, a link leading out) can make the writer touch a file outside
+``OUT``; ``OUT`` may not be, contain or lie inside any of the scene's inputs.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
+import re
 import shutil
 import struct
 import sys
@@ -71,10 +81,11 @@ import numpy as np
 from nimbus import __version__
 from nimbus.data.camera import Camera
 from nimbus.data.images import encode_png, to_uint8
-from nimbus.data.io import SCENE_FORMATS, check_not_input, write_scene_into
+from nimbus.data.io import SCENE_FORMATS, write_scene_into
 from nimbus.data.scene import Scene, View
 from nimbus.errors import NimbusError
-from nimbus.utils.fs import atomic_dir, atomic_write_bytes, atomic_write_json, check_output_dir, sha256_file
+from nimbus.utils.fs import (atomic_dir, atomic_write_bytes, atomic_write_json, check_output_dir, confined_path,
+                             refuse_overlap, remove_stale_temps, sha256_file)
 from weather_synth.archive import encode_layers, jsonable
 from weather_synth.config import SynthConfig
 from weather_synth.depth import DepthConfig, visible_point_indices
@@ -98,6 +109,8 @@ POINT_COLOUR_RULE = ("mean 8-bit colour of the degraded train images at the poin
 COLMAP_POINT_HEAD = struct.Struct("<Q3d3BdQ")
 COLMAP_RGB_OFFSET = 32
 COLMAP_TRACK_ELEMENT_BYTES = 8
+# Temporary folders inside OUT: ``.NAME.tmp-*`` (atomic_dir, the depth cache) and ``.NAME.old-*``.
+TEMP_NAME = re.compile(r"\.(?P<name>.+)\.(?:tmp|old)-[^/]+")
 
 
 @dataclass
@@ -182,8 +195,67 @@ def png_name(name: str) -> str:
     return name if name.endswith(".png") else str(Path(name).with_suffix(".png").as_posix())
 
 
+def layer_file(name: str) -> str:
+    """A view's layer archive name inside ``layers/``."""
+    return Path(png_name(name)).with_suffix(".npz").as_posix()
+
+
 def layer_name(name: str) -> str:
-    return str(Path(LAYER_DIR, Path(png_name(name)).with_suffix(".npz")).as_posix())
+    """A view's layer archive name inside the setting folder (as the manifest records it)."""
+    return f"{LAYER_DIR}/{layer_file(name)}"
+
+
+def scene_inputs(scene: Scene) -> list[Path]:
+    """Every file and folder ``scene`` is read from: its root and each view's image, depth and mask file."""
+    inputs = [Path(scene.root)] if scene.root is not None else []
+    for v in scene.views:
+        inputs += [Path(p) for p in (v.image_path, v.depth_path, v.mask_path) if p is not None]
+    return inputs
+
+
+def check_dataset_out(out: str | os.PathLike, overwrite: bool, inputs=()) -> Path:
+    """:func:`~nimbus.utils.fs.check_output_dir` for a dataset folder, once leftovers of killed runs are gone.
+
+    A run killed mid-setting leaves ``OUT/.SETTING.tmp-*`` (and perhaps a depth
+    cache ``OUT/.depth-cache.tmp-*``); their owner process is dead, so they are
+    removed here, before ``OUT`` is judged empty or not.  Folders of a live run
+    are kept (``OUT`` is then not empty).  Nothing is deleted in a folder that
+    overlaps ``inputs``, nor in one that holds other files and is refused
+    without ``overwrite`` anyway.
+    """
+    out = Path(out)
+    refuse_overlap(out, inputs)
+    with contextlib.suppress(OSError):  # unreadable or not a folder: check_output_dir says so
+        if out.is_dir():
+            temps = {p.name: m["name"] for p in out.iterdir() if (m := TEMP_NAME.fullmatch(p.name)) and p.is_dir()}
+            if overwrite or all(p.name in temps for p in out.iterdir()):
+                for name in set(temps.values()):
+                    remove_stale_temps(out / name)
+    return check_output_dir(out, overwrite, inputs)
+
+
+def check_view_names(scene: Scene, out: str | os.PathLike) -> None:
+    """Refuse view names that cannot be written into the dataset ``out``, before anything is written.
+
+    Refused: a name that would land outside its folder (absolute, ``..``, a link
+    leading out; :func:`~nimbus.utils.fs.confined_path`) and two views that
+    would share one output file.  The writes themselves go through
+    ``confined_path`` again; this check only makes a bad name fail before any
+    file is written.
+    """
+    images = Path(out) / IMAGE_DIR
+    seen: dict[Path, str] = {}
+    for v in scene.views:
+        name = png_name(v.name)
+        key = confined_path(images, name, "view").relative_to(images.resolve())
+        confined_path(Path(out) / LAYER_DIR, layer_file(v.name), "view")
+        if ".." in Path(name).parts:  # stays inside but is not a plain name (the scene writer refuses it too)
+            raise NimbusError(f"view name {v.name!r} contains '..'; names must be plain relative paths "
+                              "inside the image folder (fix the scene's image names)")
+        if key in seen:
+            raise NimbusError(f"views {seen[key]!r} and {v.name!r} would share the output file {key.as_posix()} "
+                              "once written as .png; rename the images")
+        seen[key] = v.name
 
 
 def degrade_scene(scene: Scene, out: str | os.PathLike, settings: Sequence[WeatherSetting], config: SynthConfig,
@@ -195,7 +267,9 @@ def degrade_scene(scene: Scene, out: str | os.PathLike, settings: Sequence[Weath
     scene : Scene
     out : path
         Output folder; refused when non-empty unless ``overwrite`` (then each
-        written setting folder replaces its old version atomically).
+        written setting folder replaces its old version atomically), and when
+        it is, contains or lies inside one of the scene's inputs.  A folder this
+        call creates is removed again when it fails before a setting is complete.
     settings : sequence of WeatherSetting
     config : SynthConfig
     overwrite : bool
@@ -208,23 +282,35 @@ def degrade_scene(scene: Scene, out: str | os.PathLike, settings: Sequence[Weath
     -------
     list of SettingSummary
     """
-    from tqdm import tqdm
-
     if not settings:
         raise NimbusError("no weather settings given; use e.g. --weather all")
     if not scene.views:
         raise NimbusError("the scene has zero views; nothing to degrade")
-    out = check_output_dir(out, overwrite)
-    check_not_input(scene, out)
+    out = check_dataset_out(out, overwrite, scene_inputs(scene))
+    check_view_names(scene, out)
+    created = [p for p in (out, *out.parents) if not p.exists()]  # deepest first
+    try:
+        return _degrade_into(scene, out, settings, config, progress, source)
+    except BaseException:
+        # Complete settings stay (a rerun with --overwrite replaces them); folders this call made and
+        # left empty go, so a failed run leaves nothing behind.
+        for p in created:
+            with contextlib.suppress(OSError):
+                p.rmdir()
+        raise
+
+
+def _degrade_into(scene: Scene, out: Path, settings: Sequence[WeatherSetting], config: SynthConfig,
+                  progress: bool, source: str | None) -> list[SettingSummary]:
+    """The body of :func:`degrade_scene`, once ``out`` and the view names are checked."""
+    from tqdm import tqdm
+
     fmt = scene.source_format if scene.source_format in SCENE_FORMATS else "colmap"
     renamed = any(png_name(v.name) != v.name for v in scene.views)
-    names = [png_name(v.name) for v in scene.views]
-    if len(set(names)) != len(names):
-        raise NimbusError("views would share an output file name once written as .png; rename the images")
     summaries = []
     input_sums: dict[str, str] = {}
     clean_copy: Path | None = None  # clean/ of the first finished setting: later settings copy its files
-    with Synthesizer(scene, config) as synth:
+    with Synthesizer(scene, config, cache_parent=out) as synth:
         synth.prepare(list(settings))
         for setting in settings:
             start = time.perf_counter()
@@ -241,13 +327,13 @@ def degrade_scene(scene: Scene, out: str | os.PathLike, settings: Sequence[Weath
                     out_name = png_name(view.name)
                     degraded = to_uint8(res.image)
                     image_bytes = encode_png(degraded)
-                    atomic_write_bytes(tmp / DEGRADED_STAGING_DIR / out_name, image_bytes)
+                    atomic_write_bytes(confined_path(tmp / DEGRADED_STAGING_DIR, out_name, "view"), image_bytes)
                     if view.name not in scene.test_names:
                         point_colours.add(view.camera, degraded)
                     if renamed and clean_copy is None:
-                        atomic_write_bytes(tmp / CLEAN_DIR / out_name, encode_png(J))
+                        atomic_write_bytes(confined_path(tmp / CLEAN_DIR, out_name, "view"), encode_png(J))
                     layer_bytes = encode_layers(res.layers, config.layer_compression)
-                    atomic_write_bytes(tmp / layer_name(view.name), layer_bytes)
+                    atomic_write_bytes(confined_path(tmp / LAYER_DIR, layer_file(view.name), "view"), layer_bytes)
                     view_records.append({
                         "name": view.name,
                         "image": f"{IMAGE_DIR}/{out_name}",

@@ -11,6 +11,7 @@ streaks composited together.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import tempfile
 from dataclasses import dataclass
@@ -34,6 +35,9 @@ from weather_synth.snow import render_snow
 
 # A particle pixel counts as covered above this layer value (rain radiance / snow alpha).
 COVERAGE_THRESHOLD = 0.01
+# Estimated depths are cached in ``<cache_parent>/.depth-cache.tmp-*``: the naming and ``.owner`` pid file of
+# nimbus.utils.fs.atomic_dir, so remove_stale_temps(<cache_parent>/depth-cache) removes one a killed run left.
+DEPTH_CACHE_NAME = "depth-cache"
 
 
 @dataclass
@@ -109,13 +113,16 @@ class Synthesizer:
     ----------
     scene : Scene
     config : SynthConfig
+    cache_parent : path, optional
+        Folder to keep the depth cache in (``degrade_scene`` passes its output
+        folder, so a run writes nowhere else); default: the system's temp folder.
 
     Use as a context manager (or call :meth:`close`): depths estimated from
     sparse points or a network are cached in a temporary folder for the run so
     that every setting reuses them.
     """
 
-    def __init__(self, scene: Scene, config: SynthConfig) -> None:
+    def __init__(self, scene: Scene, config: SynthConfig, cache_parent: str | os.PathLike | None = None) -> None:
         if not scene.views:
             raise NimbusError("the scene has no views; nothing to degrade")
         self.scene = scene
@@ -133,6 +140,7 @@ class Synthesizer:
         self._depth_scale: float | None = None
         self._haze: HazeModel | None = None
         self._cache_dir: Path | None = None
+        self._cache_parent = None if cache_parent is None else Path(cache_parent)
 
     # --- lazily built scene-level models -----------------------------------------------------
     @property
@@ -173,7 +181,12 @@ class Synthesizer:
         if src.kind == "scene":
             return src(view, image)
         if self._cache_dir is None:
-            self._cache_dir = Path(tempfile.mkdtemp(prefix="nimbus-synth-depth-"))
+            if self._cache_parent is None:
+                self._cache_dir = Path(tempfile.mkdtemp(prefix="nimbus-synth-depth-"))
+            else:
+                self._cache_parent.mkdir(parents=True, exist_ok=True)
+                self._cache_dir = Path(tempfile.mkdtemp(prefix=f".{DEPTH_CACHE_NAME}.tmp-", dir=self._cache_parent))
+                (self._cache_dir / ".owner").write_text(str(os.getpid()))
         key = str(derive_seed(0, "depth-cache", view.name))
         f = self._cache_dir / f"{key}.npy"
         info_f = self._cache_dir / f"{key}.json"
