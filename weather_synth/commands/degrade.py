@@ -6,6 +6,7 @@ import argparse
 from dataclasses import replace
 
 from nimbus.errors import NimbusError
+from weather_synth.commands import MAX_SEED, seed_arg
 from weather_synth.config import PROTOCOLS, SynthConfig, apply_overrides, protocol_config
 from weather_synth.compose import COMPOSITION_ORDERS
 from weather_synth.haze import HAZE_MODES
@@ -26,7 +27,7 @@ def add_synth_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--protocol", choices=PROTOCOLS, default="onerestore",
                    help="onerestore: the paper's data (OneRestore haze on normalised depth, per-view beta/A, "
                         "rain -> snow -> haze); physical: one medium per scene, depth-aware particles, linear light")
-    g.add_argument("--seed", type=int, default=0, help="scene seed: same seed, same bytes")
+    g.add_argument("--seed", type=seed_arg, default=0, help=f"scene seed in [0, {MAX_SEED}]: same seed, same bytes")
     g.add_argument("--depth", default="auto", metavar="SOURCE",
                    help="depth for haze and depth-aware particles: scene (the views' depth maps), sparse "
                         "(densified SfM points), onnx:MODEL.onnx (monocular model aligned to the points), "
@@ -120,18 +121,37 @@ def config_from_args(args: argparse.Namespace, scene=None) -> SynthConfig:
     return apply_overrides(cfg, args.set)
 
 
+BUILTIN_PREFIX = "builtin:"
+
+
 def load_input_scene(spec: str, downscale: int = 1):
-    """A scene folder, or ``builtin:NAME[:SIZE]`` for a built-in scene rendered in memory."""
-    if spec.startswith("builtin:"):
-        from nimbus.data.builtin import render_builtin
+    """A scene folder, or ``builtin:NAME[:SIZE]`` for a built-in scene rendered in memory.
+
+    ``downscale`` picks a scene folder's ``images_<d>/``; a built-in scene has no
+    such copies (its SIZE sets the resolution), so anything but 1 is refused
+    rather than ignored and then recorded as if it had been applied.
+    """
+    if spec.startswith(BUILTIN_PREFIX):
+        from nimbus.data.builtin import SIZES, list_scenes, render_builtin
 
         parts = spec.split(":")
-        name = parts[1] if len(parts) > 1 else ""
-        size = parts[2] if len(parts) > 2 else "tiny"
+        if len(parts) > 3 or not parts[1]:
+            raise NimbusError(f"{spec!r}: write a built-in scene as builtin:NAME[:SIZE], e.g. builtin:garden:small "
+                              f"(scenes: {', '.join(list_scenes())}; sizes: {', '.join(SIZES)})")
+        name, size = parts[1], parts[2] if len(parts) > 2 else "tiny"
+        if downscale != 1:
+            raise NimbusError(f"--downscale {downscale} applies to scene folders with images_{downscale}/; a built-in "
+                              f"scene's resolution is its SIZE: use builtin:{name}:tiny|small|standard "
+                              "without --downscale")
         return render_builtin(name, size)
     from nimbus.data.io import load_scene
 
     return load_scene(spec, downscale=downscale)
+
+
+def input_paths(spec: str) -> list[str]:
+    """The paths a SCENE argument reads (none for a built-in scene)."""
+    return [] if spec.startswith(BUILTIN_PREFIX) else [spec]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -145,11 +165,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from nimbus.utils.fs import check_output_dir
-    from weather_synth.dataset import degrade_scene, format_summary
+    from weather_synth.dataset import check_dataset_out, degrade_scene, format_summary
 
     settings = parse_weather(args.weather)
-    check_output_dir(args.out, args.overwrite)  # before loading: fail fast
+    # Before loading: fail fast.  degrade_scene checks again against every file the scene reads.
+    check_dataset_out(args.out, args.overwrite, inputs=input_paths(args.scene))
     scene = load_input_scene(args.scene, args.downscale)
     config = config_from_args(args, scene)
     summaries = degrade_scene(scene, args.out, settings, config, overwrite=args.overwrite,

@@ -29,19 +29,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from nimbus.data.builtin import render_builtin
     from nimbus.data.images import write_image
-    from nimbus.utils.fs import check_output_dir
-    from weather_synth.contact_sheet import dataset_contact_sheet
+    from nimbus.utils.fs import atomic_dir, check_output_dir
+    from weather_synth.contact_sheet import check_sheet_options, dataset_contact_sheet
     from weather_synth.dataset import degrade_scene, format_summary
     from weather_synth.settings import parse_weather
 
     settings = parse_weather(args.weather)
-    check_output_dir(args.out, args.overwrite)
+    check_sheet_options(args.views, args.tile_width)
+    check_output_dir(args.out, args.overwrite)  # the demo reads no files, so no input to overlap
     scene = render_builtin(args.scene, args.size, seed=args.seed, progress=not args.quiet)
     config = config_from_args(args, scene)
-    summaries = degrade_scene(scene, args.out, settings, config, overwrite=args.overwrite,
-                              progress=not args.quiet, source=f"builtin:{args.scene}:{args.size}")
-    sheet = Path(args.out) / SHEET
-    write_image(sheet, dataset_contact_sheet(args.out, args.views, args.tile_width))
+    # The whole folder (dataset and sheet) is built beside DIR and renamed into place, so a failed or killed
+    # demo leaves no partial DIR (atomic_dir removes a killed run's temporary folder on the next run).
+    with atomic_dir(args.out, args.overwrite) as tmp:
+        summaries = degrade_scene(scene, tmp, settings, config, overwrite=True,  # tmp holds only atomic_dir's .owner
+                                  progress=not args.quiet, source=f"builtin:{args.scene}:{args.size}")
+        write_image(tmp / SHEET, dataset_contact_sheet(tmp, args.views, args.tile_width))
     print(format_summary(summaries))
-    print(f"wrote {args.out}; look at {sheet}", file=sys.stdout)
+    print(f"wrote {args.out}; look at {Path(args.out) / SHEET}", file=sys.stdout)
     return 0

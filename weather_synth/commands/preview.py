@@ -23,15 +23,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from nimbus.data.images import write_image
-    from weather_synth.contact_sheet import dataset_contact_sheet
+    from nimbus.utils.fs import check_output_dir, refuse_overlap
+    from weather_synth.contact_sheet import check_sheet_options, dataset_contact_sheet
 
     out = Path(args.out)
     if out.suffix.lower() != ".png":
         raise NimbusError(f"--out must be a .png file, got {out}")
+    # A sheet written into the dataset would change what it shows (and what trainers read).
+    refuse_overlap(out, [args.dataset])
+    if out.is_dir():
+        raise NimbusError(f"--out {out} is a folder; choose another --out, the .png file to write "
+                          f"(e.g. {out / 'sheet.png'})")
     if out.exists() and not args.overwrite:
         raise NimbusError(f"{out} exists; pass --overwrite to replace it or choose another --out")
-    if args.tile_width < 16:
-        raise NimbusError(f"--tile-width must be at least 16 pixels, got {args.tile_width}")
+    # Its folder must be a writable directory (created if missing; nothing is written yet).
+    check_output_dir(out.parent, overwrite=True, flag="--out's folder")
+    check_sheet_options(args.views, args.tile_width)
     write_image(out, dataset_contact_sheet(args.dataset, args.views, args.tile_width, args.view))
     print(f"wrote {out}")
     return 0

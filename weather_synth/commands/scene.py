@@ -8,6 +8,7 @@ import time
 
 from nimbus.data.builtin import SCENES, SIZES, get_scene, get_size, list_scenes, write_builtin
 from nimbus.errors import NimbusError
+from weather_synth.commands import MAX_SEED, seed_arg
 
 HELP = "render a built-in outdoor scene (exact depth and sky mask) as a COLMAP scene folder"
 EXAMPLE = "nimbus-synth scene garden --size small --out scenes/garden"
@@ -18,8 +19,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", default="small", choices=list(SIZES),
                         help="image size and view count (see --list)")
     parser.add_argument("--out", metavar="DIR", help="scene folder to create (must be empty unless --overwrite)")
-    parser.add_argument("--seed", type=int, default=0,
-                        help="non-negative; shifts textures and jitters objects and cameras slightly")
+    parser.add_argument("--seed", type=seed_arg, default=0,
+                        help=f"0 to {MAX_SEED}; shifts textures and jitters objects and cameras slightly")
     parser.add_argument("--overwrite", action="store_true", help="replace a non-empty --out")
     parser.add_argument("--list", action="store_true", help="list the scenes and sizes, then exit")
 

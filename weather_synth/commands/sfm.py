@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from nimbus.data.sfm import CAMERA_MODELS, MATCHERS, SfmConfig, list_photos, run_sfm
+from weather_synth.commands import MAX_SEED, seed_arg
 
 HELP = "recover cameras and sparse points from photos (COLMAP SfM on the CPU) and write a scene folder"
 EXAMPLE = "nimbus-synth sfm my_photos/ --out scenes/garden"
@@ -18,7 +19,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true", help="replace a non-empty SCENE_DIR")
     parser.add_argument("--matcher", choices=MATCHERS, default=default.matcher,
                         help="exhaustive: every pair of photos; sequential: neighbours in name order (video)")
-    parser.add_argument("--seed", type=int, default=default.seed, help="random seed (same seed, same result)")
+    parser.add_argument("--seed", type=seed_arg, default=default.seed,
+                        help=f"random seed in [0, {MAX_SEED}] (same seed, same result)")
     parser.add_argument("--max-image-size", type=int, default=default.max_image_size,
                         help="longest side (pixels) photos are reduced to for feature extraction")
     parser.add_argument("--camera-model", choices=CAMERA_MODELS, default=default.camera_model,
@@ -30,6 +32,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from nimbus.utils.fs import check_output_dir
+
+    # The scene is written atomically beside SCENE_DIR; refuse before feature extraction when SCENE_DIR is
+    # unusable or overlaps the photos (--overwrite would replace them).
+    check_output_dir(args.out, args.overwrite, inputs=[args.photos])
     config = SfmConfig(matcher=args.matcher, seed=args.seed, max_image_size=args.max_image_size,
                        camera_model=args.camera_model, single_camera=args.single_camera,
                        num_threads=args.threads)
