@@ -62,12 +62,12 @@ def test_overrides_reach_nested_fields_and_refuse_unknown_keys():
     assert cfg.haze.airlight == (0.7, 0.8, 0.9) and cfg.compose.linear is False
     with pytest.raises(NimbusError, match="unknown setting 'haze.bogus'.*valid keys"):
         apply_overrides(cfg, ["haze.bogus=1"])
-    with pytest.raises(NimbusError, match="expects a number"):
+    with pytest.raises(NimbusError, match="haze.visibility_scale=thick: must be a finite number > 0"):
         apply_overrides(cfg, ["haze.visibility_scale=thick"])
     with pytest.raises(NimbusError, match="key=value"):
         apply_overrides(cfg, ["haze.beta"])
-    # Values are validated by the configs themselves.
-    with pytest.raises(NimbusError, match="beta must be >= 0"):
+    # Values are validated against the config's limits before they are set.
+    with pytest.raises(NimbusError, match=r"haze.beta=-1: must be a number >= 0"):
         apply_overrides(cfg, ["haze.beta=-1"])
 
 

@@ -32,12 +32,13 @@ M_init in {1k, 2k, 4k, 10k, 15k}  ``m_init=...`` (:func:`paper_m_init` scales it
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
+from typing import ClassVar
 
+from nimbus.config_validation import Limit, at_least, between, fraction, one_of, positive
 from nimbus.errors import NimbusError
 from nimbus.train.config import PRESETS as GS_PRESETS
-from nimbus.train.config import SCHEDULE_FIELDS, TrainConfig, lookup_preset
+from nimbus.train.config import SCHEDULE_FIELDS, TrainConfig, lookup_preset, rescale_step
 
 #: The degradation components NimbusGS can model.
 COMPONENTS = ("csm", "plm", "ggs")
@@ -282,42 +283,37 @@ class NimbusConfig(TrainConfig):
     # outputs
     write_decomposition: bool = True
 
+    #: The accepted values of each field: the 3DGS ones plus NimbusGS's (see :mod:`nimbus.config_validation`).
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        **TrainConfig.LIMITS,
+        "iterations": at_least(2, note="stage 1 and stage 2 need one each"), "m_init": at_least(1), "lr_scales_init": at_least(0),
+        "extinction": one_of(*EXTINCTIONS), "grid_resolution": at_least(2), "grid_init_std": at_least(0),
+        "box_scale": at_least(1, note="the box must hold the Gaussians"),
+        "box_content_factor": at_least(1, also=(0,), note="0 keeps every centre"),
+        "ray_samples": at_least(1), "init_transmission": between(0, 1, hi_open=True, note="0: estimate"),
+        "lr_extinction": at_least(0), "surface_alpha_min": between(0, 1, lo_open=True),
+        "airlight": one_of(*AIRLIGHTS), "airlight_hidden": at_least(1), "airlight_sh_degree": between(0, 3),
+        "lr_airlight": at_least(0),
+        "lambda_dcp": at_least(0), "dcp_form": one_of(*DCP_FORMS), "dcp_patch": at_least(1),
+        "dcp_temperature": at_least(0, note="0: hard minimum"), "lambda_tv": at_least(0),
+        "residual_source": one_of(*RESIDUAL_SOURCES), "residual_outlier_sigmas": at_least(0, note="0: off"),
+        "residual_outlier_scope": one_of(*OUTLIER_SCOPES),
+        "residual_tophat": between(0, 0.5, note="a fraction of the image width; 0: off"),
+        "consistency_neighbours": at_least(0, note="0: no check"), "refresh_interval": at_least(1),
+        "refresh_mode": one_of(*REFRESH_MODES),
+        "ggs_r0": positive(), "ggs_clip": at_least(0, finite=False, ordered=True, note="lo <= 1 <= hi"),
+        "auto_dark_threshold": fraction(), "auto_depth_corr": between(-1, 1),
+        "auto_particle_threshold": between(-1, 1), "auto_particle_energy": at_least(0),
+    }
+
     def __post_init__(self) -> None:
         super().__post_init__()
         parse_components(self.components)
-        if not 1 <= self.m_init < self.iterations:
-            raise NimbusError(f"m_init (stage-1 iterations) must be in 1..iterations-1 = {self.iterations - 1}, "
-                              f"got {self.m_init}")
-        for name, allowed in (("extinction", EXTINCTIONS), ("airlight", AIRLIGHTS), ("dcp_form", DCP_FORMS),
-                              ("residual_source", RESIDUAL_SOURCES), ("refresh_mode", REFRESH_MODES),
-                              ("residual_outlier_scope", OUTLIER_SCOPES)):
-            if getattr(self, name) not in allowed:
-                raise NimbusError(f"{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
-        for name in ("grid_resolution", "ray_samples", "refresh_interval", "dcp_patch", "airlight_hidden"):
-            if getattr(self, name) < (2 if name == "grid_resolution" else 1):
-                raise NimbusError(f"{name} must be >= {2 if name == 'grid_resolution' else 1}, "
-                                  f"got {getattr(self, name)}")
-        if not 0 <= self.airlight_sh_degree <= 3:
-            raise NimbusError(f"airlight_sh_degree must be in 0..3, got {self.airlight_sh_degree}")
-        if not 0.0 <= self.init_transmission < 1.0:
-            raise NimbusError(f"init_transmission must be in [0, 1) (0: estimate), got {self.init_transmission}")
-        if self.box_content_factor != 0 and not 1.0 <= self.box_content_factor < math.inf:
-            raise NimbusError(f"box_content_factor must be 0 (keep every centre) or a finite value >= 1, "
-                              f"got {self.box_content_factor}")
-        if self.box_scale < 1.0:
-            raise NimbusError(f"box_scale must be >= 1 (the box must hold the Gaussians), got {self.box_scale}")
-        if not 0.0 <= self.residual_tophat <= 0.5:
-            raise NimbusError(f"residual_tophat must be in [0, 0.5] (a fraction of the image width; 0 = off), "
-                              f"got {self.residual_tophat}")
-        if not 0.0 < self.surface_alpha_min <= 1.0:
-            raise NimbusError(f"surface_alpha_min must be in (0, 1], got {self.surface_alpha_min}")
-        if len(self.ggs_clip) != 2 or not 0.0 <= self.ggs_clip[0] <= 1.0 <= self.ggs_clip[1]:
-            raise NimbusError(f"ggs_clip must be (low, high) with 0 <= low <= 1 <= high, got {self.ggs_clip}")
-        for name in ("lambda_dcp", "lambda_tv", "lr_scales_init", "lr_extinction", "lr_airlight", "ggs_r0",
-                     "dcp_temperature", "grid_init_std", "residual_outlier_sigmas",
-                     "consistency_neighbours"):
-            if getattr(self, name) < 0:
-                raise NimbusError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if not self.m_init < self.iterations:
+            raise NimbusError(f"m_init={self.m_init}: stage 1 must leave stage 2 some iterations, so m_init must "
+                              f"be in 1..iterations-1 = {self.iterations - 1}")
+        if not self.ggs_clip[0] <= 1.0 <= self.ggs_clip[1]:
+            raise NimbusError(f"ggs_clip={self.ggs_clip}: must be (low, high) with 0 <= low <= 1 <= high")
 
     @property
     def forced_components(self) -> frozenset[str] | None:
@@ -332,9 +328,8 @@ class NimbusConfig(TrainConfig):
     def rescaled(self, iterations: int) -> "NimbusConfig":
         """As :meth:`TrainConfig.rescaled`, also stretching ``m_init`` and ``refresh_interval``."""
         ratio = iterations / self.iterations
-        changes = {name: max(int(round(getattr(self, name) * ratio)), 1) for name in SCHEDULE_FIELDS}
-        changes["m_init"] = min(max(int(round(self.m_init * ratio)), 1), iterations - 1)
-        changes["refresh_interval"] = max(int(round(self.refresh_interval * ratio)), 1)
+        changes = {name: rescale_step(getattr(self, name), ratio) for name in (*SCHEDULE_FIELDS, "refresh_interval")}
+        changes["m_init"] = min(rescale_step(self.m_init, ratio), iterations - 1)
         return dataclasses.replace(self, iterations=iterations, **changes)
 
 

@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import ClassVar
 
+from nimbus.config_validation import (INT_MAX, Limit, at_least, between, check_field, fraction,
+                                     given_as, one_of, positive, validate)
 from nimbus.errors import NimbusError
-
 
 
 @dataclass(frozen=True)
@@ -82,72 +84,114 @@ class TrainConfig:
     checkpoint_interval: int = 1000
     test_interval: int = 0
 
+    #: The accepted values of each field (see :mod:`nimbus.config_validation`).
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "iterations": at_least(1),
+        # learning rates: > 0 where the schedule takes their log, >= 0 (0 freezes the group) elsewhere
+        "lr_means_init": positive(note="decays log-linearly"), "lr_means_final": positive(note="decays log-linearly"),
+        "lr_sh_dc": at_least(0), "lr_sh_rest": at_least(0), "lr_opacity": at_least(0), "lr_scales": at_least(0),
+        "lr_quats": at_least(0), "adam_eps": positive(),
+        "lambda_dssim": fraction(),
+        "sh_degree": between(0, 3), "sh_degree_interval": at_least(1),
+        "densify_from": at_least(0), "densify_until": at_least(0), "densify_interval": at_least(1),
+        "densify_grad_threshold": at_least(0), "percent_dense": at_least(0),
+        "prune_opacity": fraction(), "prune_big_screen_px": at_least(0), "prune_big_world": at_least(0),
+        # stored through the logit: 0 and 1 are +-inf
+        "opacity_reset_interval": at_least(1), "opacity_reset_value": between(0, 1, lo_open=True, hi_open=True),
+        "max_gaussians": at_least(1),
+        "init_opacity": between(0, 1, lo_open=True, hi_open=True), "init_random_points": at_least(0),
+        "train_downscale": at_least(1),
+        "background": fraction(note="R, G, B"),
+        "backend": one_of("auto", "torch", "cpp", "gsplat"),
+        "tile_size": at_least(1),
+        "near_plane": positive(),
+        "log_interval": at_least(1), "checkpoint_interval": at_least(1), "test_interval": at_least(0, note="0: off"),
+    }
+
     def __post_init__(self) -> None:
-        if self.iterations < 1:
-            raise NimbusError(f"iterations must be >= 1, got {self.iterations}")
-        if not 0 <= self.sh_degree <= 3:
-            raise NimbusError(f"sh_degree must be in 0..3, got {self.sh_degree}")
-        if not 0.0 <= self.lambda_dssim <= 1.0:
-            raise NimbusError(f"lambda_dssim must be in [0, 1], got {self.lambda_dssim}")
-        if self.backend not in ("auto", "torch", "cpp", "gsplat"):
-            raise NimbusError(f"backend must be auto, torch, cpp or gsplat, got {self.backend!r}")
-        for name in ("densify_interval", "sh_degree_interval", "opacity_reset_interval", "tile_size",
-                     "train_downscale"):
-            if getattr(self, name) < 1:
-                raise NimbusError(f"{name} must be >= 1, got {getattr(self, name)}")
+        validate(self, self.LIMITS)
 
     def rescaled(self, iterations: int) -> "TrainConfig":
         """This config with every schedule step stretched or shrunk by ``iterations / self.iterations``."""
         ratio = iterations / self.iterations
         return dataclasses.replace(self, iterations=iterations, **{
-            name: max(int(round(getattr(self, name) * ratio)), 1) for name in SCHEDULE_FIELDS})
+            name: rescale_step(getattr(self, name), ratio) for name in SCHEDULE_FIELDS})
 
     def with_overrides(self, overrides: dict[str, str]) -> "TrainConfig":
         """Apply ``--set key=value`` overrides, parsing each value as the field's type.
 
+        Each value is checked against :attr:`LIMITS` before anything else, so a bad one
+        raises :class:`NimbusError` naming it as typed (``--set near_plane=nan: must be ...``).
         Changing ``iterations`` alone rescales the whole schedule (densification,
         resets, SH steps) so a longer or shorter run keeps the preset's shape.
         """
+        changes = parse_overrides(self, overrides)
         config = self
-        if "iterations" in overrides and not SCHEDULE_FIELDS & overrides.keys():
-            config = config.rescaled(int(_parse_like(1, overrides["iterations"], "iterations")))
-        return apply_overrides(config, overrides)
+        if "iterations" in changes and not SCHEDULE_FIELDS & changes.keys():
+            config = config.rescaled(changes["iterations"])
+        return dataclasses.replace(config, **changes)
 
 
 SCHEDULE_FIELDS = frozenset({"densify_from", "densify_until", "densify_interval", "opacity_reset_interval",
                              "sh_degree_interval", "checkpoint_interval"})
 
+
+def rescale_step(step: int, ratio: float) -> int:
+    """A schedule step (an interval, a start) times ``ratio``, kept within 1..INT_MAX.
+
+    A preset's "never" (``opacity_reset_interval=10**9``) stretched by a longer run stays "never".
+    """
+    return min(max(int(round(step * ratio)), 1), INT_MAX)
+
+
 def apply_overrides(config, overrides: dict[str, str]):
     """Return ``config`` (a frozen dataclass) with string overrides parsed to the fields' types."""
+    return dataclasses.replace(config, **parse_overrides(config, overrides))
+
+
+def parse_overrides(config, overrides: dict[str, str]) -> dict:
+    """``{key: raw text}`` -> ``{key: value}`` parsed as the fields of ``config`` and checked against its limits.
+
+    Raises NimbusError for an unknown key, text that does not parse, or a value out of range.
+    """
     fields = {f.name: f for f in dataclasses.fields(config)}
+    limits = getattr(config, "LIMITS", {})
     changes = {}
     for key, raw in overrides.items():
         if key not in fields:
             close = ", ".join(sorted(n for n in fields if key.split("_")[0] in n)[:8]) or ", ".join(sorted(fields)[:12])
             raise NimbusError(f"unknown setting {key!r}; known settings include: {close}")
-        current = getattr(config, key)
-        changes[key] = _parse_like(current, raw, key)
-    return dataclasses.replace(config, **changes)
+        given, current = given_as(key, raw), getattr(config, key)
+        # tuples are written comma-separated here (weather_synth's --set takes JSON lists)
+        example = f"{key}={','.join(map(str, current))}" if isinstance(current, tuple) else None
+        try:
+            value = _parse_like(current, raw)
+        except ValueError:
+            value = raw  # text where a number is meant: the check below refuses it with the accepted range
+        check_field(type(config), key, value, limits, given, example)
+        changes[key] = value
+    return changes
 
 
-def _parse_like(current, raw: str, key: str):
-    try:
-        if isinstance(current, bool):
-            if raw.lower() in ("1", "true", "yes", "on"):
-                return True
-            if raw.lower() in ("0", "false", "no", "off"):
-                return False
+def _parse_like(current, raw: str):
+    """``raw`` parsed as the type of ``current``; ValueError if it does not parse."""
+    if isinstance(current, bool):
+        if raw.lower() in ("1", "true", "yes", "on"):
+            return True
+        if raw.lower() in ("0", "false", "no", "off"):
+            return False
+        raise ValueError(raw)
+    if isinstance(current, int):
+        number = float(raw)  # "1e3" is an integer; "2.5", "inf" and "nan" are not
+        if not number.is_integer():
             raise ValueError(raw)
-        if isinstance(current, int):
-            return int(float(raw)) if float(raw).is_integer() else int(raw)
-        if isinstance(current, float):
-            return float(raw)
-        if isinstance(current, tuple):
-            parts = [p for p in raw.replace("(", "").replace(")", "").split(",") if p.strip()]
-            return tuple(type(current[0])(p) for p in parts) if current else tuple(parts)
-        return raw
-    except ValueError:
-        raise NimbusError(f"setting {key}={raw!r}: expected a value like {current!r}") from None
+        return int(raw) if raw.strip().lstrip("+-").isdigit() else int(number)
+    if isinstance(current, float):
+        return float(raw)
+    if isinstance(current, tuple):
+        parts = [p for p in raw.replace("(", "").replace(")", "").split(",") if p.strip()]
+        return tuple(type(current[0])(p) for p in parts) if current else tuple(parts)
+    return raw
 
 
 def parse_set_args(items: list[str] | None) -> dict[str, str]:
