@@ -1,0 +1,255 @@
+"""Hostile config values (issue 14, items 6 and 7): every numeric setting is checked at the boundary.
+
+Before, ``--set lr_means_init=inf`` finished with NaN Gaussians and exit 0, ``near_plane=nan``
+trained on nothing, and ``haze.beta_range=[1]``, ``checkpoint_interval=0``, ``log_interval=0``
+and ``background=0.5`` ended in tracebacks.  Now each is one ``error:`` line naming the key,
+the value as typed and what is accepted, and nothing is written.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from nimbus.config_validation import INT_MAX, field_shapes, at_least, field_problem, validate
+from nimbus.errors import NimbusError
+from nimbus.nimbusgs.config import NimbusConfig
+from nimbus.nimbusgs.config import PRESETS as NIMBUS_PRESETS
+from nimbus.train.config import PRESETS as GS_PRESETS
+from nimbus.train.config import TrainConfig
+from nimbus.train.methods import METHODS, get_method
+from weather_synth.config import LIMITS as SYNTH_LIMITS
+from weather_synth.config import SynthConfig, apply_overrides, protocol_config
+
+
+def _numeric_fields(cls):
+    """(name, shape) of every int / float field (scalars and fixed-length tuples) of a config class."""
+    return [(n, s) for n, s in field_shapes(cls).items() if s.base in (int, float) and s.length is not None]
+
+
+def _synth_leaves():
+    """(dotted key, owning class, field name) of every numeric leaf of the synthesizer's config tree."""
+    root = protocol_config()
+    out = [(n, SynthConfig, n) for n, _ in _numeric_fields(SynthConfig)]
+    for group in ("haze", "rain", "snow", "depth", "compose"):
+        cls = type(getattr(root, group))
+        out += [(f"{group}.{n}", cls, n) for n, _ in _numeric_fields(cls)]
+    return out
+
+
+# --- nimbus-train: TrainConfig / NimbusConfig -------------------------------------------------------
+@pytest.mark.parametrize("key, raw, accepted", [
+    ("near_plane", "nan", "a finite number > 0"),
+    ("lr_means_init", "inf", "a finite number > 0"),
+    ("lr_means_final", "0", "a finite number > 0"),
+    ("checkpoint_interval", "0", "an integer >= 1"),
+    ("log_interval", "0", "an integer >= 1"),
+    ("background", "0.5", "3 items each a number in [0, 1]"),
+    ("background", "0.5,0.5,abc", "3 items each a number in [0, 1]"),
+    ("background", "0,0,2", "3 items each a number in [0, 1]"),
+    ("iterations", "2.5", "an integer >= "),  # 1 for 3DGS, 2 for NimbusGS
+    ("iterations", "many", "an integer >= "),  # 1 for 3DGS, 2 for NimbusGS
+    ("iterations", "0", "an integer >= "),  # 1 for 3DGS, 2 for NimbusGS
+    ("sh_degree", "4", "an integer in 0..3"),
+    ("init_opacity", "1", "a number in (0, 1)"),
+    ("opacity_reset_value", "0", "a number in (0, 1)"),
+    ("max_gaussians", "1e12", f"an integer >= 1 and at most {INT_MAX}"),
+    ("test_interval", "-1", "an integer >= 0"),
+    ("lambda_dssim", "nan", "a number in [0, 1]"),
+    ("adam_eps", "-inf", "a finite number > 0"),
+    ("random_background", "maybe", "true or false"),
+    ("backend", "tpu", "one of auto, torch, cpp, gsplat"),
+])
+def test_bad_trainer_set_value_names_key_value_and_range(key, raw, accepted):
+    for presets in (GS_PRESETS, NIMBUS_PRESETS):
+        with pytest.raises(NimbusError) as e:
+            presets["tiny"].with_overrides({key: raw})
+        assert str(e.value).startswith(f"--set {key}={raw}: must be {accepted}")
+
+
+@pytest.mark.parametrize("key, raw, accepted", [
+    ("ggs_clip", "1", "(lo, hi), 2 items"),
+    ("ggs_clip", "3,2", "with lo <= hi"),
+    ("ggs_clip", "nan,2", "(lo, hi), 2 items"),
+    ("box_content_factor", "0.5", "0 or a finite number >= 1"),
+    ("grid_resolution", "1", "an integer >= 2"),
+    ("ray_samples", "0", "an integer >= 1"),
+    ("refresh_interval", "0", "an integer >= 1"),
+    ("init_transmission", "1", "a number in [0, 1)"),
+    ("ggs_r0", "0", "a finite number > 0"),
+    ("auto_depth_corr", "nan", "a number in [-1, 1]"),
+    ("extinction", "voxels", "one of grid, uniform, gaussian"),
+    ("iterations", "1", "an integer >= 2 (stage 1 and stage 2 need one each)"),
+])
+def test_bad_nimbusgs_set_value_names_key_value_and_range(key, raw, accepted):
+    with pytest.raises(NimbusError) as e:
+        NIMBUS_PRESETS["tiny"].with_overrides({key: raw})
+    assert str(e.value).startswith(f"--set {key}={raw}: must be ") and accepted in str(e.value)
+
+
+def test_tuple_errors_show_the_syntax_to_use():
+    with pytest.raises(NimbusError, match=r"e\.g\. background=0\.0,0\.0,0\.0$"):
+        GS_PRESETS["tiny"].with_overrides({"background": "0.5"})
+
+
+@pytest.mark.parametrize("cls", [TrainConfig, NimbusConfig])
+def test_every_numeric_trainer_field_refuses_nan_and_inf_on_construction(cls):
+    base = NIMBUS_PRESETS["tiny"] if cls is NimbusConfig else GS_PRESETS["tiny"]
+    fields = _numeric_fields(cls)
+    assert len(fields) >= (55 if cls is NimbusConfig else 30)  # a guard against the test checking nothing
+    for name, shape in fields:
+        for bad in (math.nan, -math.inf):
+            value = (bad,) * shape.length if shape.length else bad
+            with pytest.raises(NimbusError, match=f"^{name}=") as e:
+                dataclasses.replace(base, **{name: value})
+            assert "must be" in str(e.value), name
+        if shape.base is int:
+            with pytest.raises(NimbusError, match=f"^{name}=2.5: must be an integer"):
+                dataclasses.replace(base, **{name: 2.5})
+            with pytest.raises(NimbusError, match="integer"):
+                dataclasses.replace(base, **{name: True})
+
+
+def test_a_config_json_with_nan_is_refused_when_rebuilt():
+    # --resume rebuilds the config from config.json; json writes NaN and reads it back.
+    saved = json.loads(json.dumps(dataclasses.asdict(dataclasses.replace(NIMBUS_PRESETS["tiny"]))))
+    saved["near_plane"] = float("nan")
+    with pytest.raises(NimbusError, match="near_plane=nan: must be a finite number > 0"):
+        NimbusConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()})
+
+
+def test_presets_variants_and_extreme_but_valid_values_still_construct():
+    for name in sorted(METHODS):
+        for p in ("tiny", "fast", "paper"):
+            config = get_method(name).preset(p)
+            validate(config, config.LIMITS)
+    tiny = NIMBUS_PRESETS["tiny"]
+    # the stability report's extreme-but-legal settings, and the ablations' off switches
+    ok = tiny.with_overrides({"init_opacity": "1e-4", "lr_scales": "50", "near_plane": "1e6", "ggs_clip": "0,inf",
+                              "box_content_factor": "0", "lambda_dcp": "0", "lambda_tv": "0", "test_interval": "0",
+                              "background": "1,1,1", "consistency_neighbours": "0", "dcp_temperature": "0"})
+    assert ok.ggs_clip == (0.0, math.inf) and ok.background == (1.0, 1.0, 1.0)
+    assert GS_PRESETS["tiny"].with_overrides({"iterations": "1e3"}).iterations == 1000
+    # stretching the tiny schedule 10x keeps its "never" opacity reset (10**9) a legal integer
+    longer = GS_PRESETS["tiny"].with_overrides({"iterations": "3000"})
+    assert longer.opacity_reset_interval == INT_MAX and longer.densify_until == 10 * GS_PRESETS["tiny"].densify_until
+
+
+def test_a_numeric_field_without_a_limit_is_a_programming_error():
+    @dataclasses.dataclass(frozen=True)
+    class Half:
+        count: int = 1
+        scale: float = 1.0
+
+    assert field_problem(Half, "count", 0, {"count": at_least(1)}) == "must be an integer >= 1"
+    with pytest.raises(TypeError, match="Half.scale is numeric but has no entry"):
+        validate(Half(), {"count": at_least(1)})
+
+
+# --- nimbus-synth: SynthConfig and its sub-configs -----------------------------------------------
+@pytest.mark.parametrize("item, accepted", [
+    ("haze.beta_range=[1]", "(lo, hi), 2 items each a finite number >= 0, with lo <= hi"),
+    ("haze.beta_range=[2, 1]", "with lo <= hi"),
+    ("haze.beta_range=[1, Infinity]", "(lo, hi), 2 items each a finite number >= 0"),
+    ("haze.beta=abc", "a number >= 0"),
+    ("haze.beta=NaN", "a number >= 0"),
+    ("haze.airlight=[0.5, 0.5]", "3 items each a number in [0, 1]"),
+    ("haze.airlight_range=[0.2, 1.5]", "(lo, hi), 2 items each a number in [0, 1]"),
+    ("haze.fog_grid=0", "an integer >= 1"),
+    ("haze.mode=fog", "one of onerestore, homogeneous, heterogeneous"),
+    ("haze.quantize_depth=1", "true or false"),
+    ("rain.slices=2.5", "an integer >= 1"),
+    ("rain.angle_jitter=-Infinity", "a number in [0, 90]"),
+    ("snow.color=2", "a number in [0, 1]"),
+    ("depth.guided_eps=0", "a finite number > 0"),
+    ("compose.snow_color=NaN", "a number in [0, 1]"),
+    ("layer_compression=10", "an integer in 0..9"),
+    ("seed=-1", "an integer >= 0"),
+])
+def test_bad_synth_set_value_names_key_value_and_range(item, accepted):
+    with pytest.raises(NimbusError) as e:
+        apply_overrides(protocol_config(), [item])
+    message = str(e.value)
+    assert message.startswith(f"--set {item}: must be ") and accepted in message
+
+
+def test_synth_set_keeps_its_grammar_and_legal_extremes():
+    cfg = apply_overrides(protocol_config(), ["haze.beta=Infinity", "haze.airlight=0.8", "rain.slices=3.0",
+                                              "haze.fog_grid=1e3", "haze.beta_range=[0, 0]"])
+    assert cfg.haze.beta == math.inf and cfg.haze.airlight == 0.8 and cfg.haze.beta_range == (0, 0)
+    assert cfg.rain.slices == 3 and isinstance(cfg.rain.slices, int) and cfg.haze.fog_grid == 1000
+    assert apply_overrides(cfg, ["haze.beta=null"]).haze.beta is None
+
+
+def test_every_numeric_synth_leaf_refuses_nan_through_set():
+    leaves = _synth_leaves()
+    assert len(leaves) >= 30
+    for key, cls, name in leaves:
+        assert name in SYNTH_LIMITS[cls], key
+        shape = field_shapes(cls)[name]
+        raw = json.dumps([math.nan] * shape.length) if shape.length else "NaN"
+        with pytest.raises(NimbusError, match="must be") as e:
+            apply_overrides(protocol_config(), [f"{key}={raw}"])
+        assert str(e.value).startswith(f"--set {key}={raw}: "), key
+
+
+def test_synth_config_checks_its_whole_tree_on_construction():
+    cfg = protocol_config()
+    with pytest.raises(NimbusError, match=r"^fog_grid=0: must be an integer >= 1"):
+        dataclasses.replace(cfg, haze=dataclasses.replace(cfg.haze, fog_grid=0))
+    with pytest.raises(NimbusError, match=r"^max_wind_tilt=nan: must be a number in \[0, 90\)"):
+        SynthConfig(max_wind_tilt=math.nan)
+
+
+def test_a_huge_or_deeply_nested_value_gives_a_short_message():
+    with pytest.raises(NimbusError) as e:
+        apply_overrides(protocol_config(), ["haze.beta=" + "[" * 100_000])
+    assert len(str(e.value)) < 200 and "(100000 characters)" in str(e.value)
+    with pytest.raises(NimbusError) as e:
+        GS_PRESETS["tiny"].with_overrides({"near_plane": "9" * 5000})  # parses to inf
+    assert len(str(e.value)) < 200
+
+
+# --- the command lines: one error line, exit 2, nothing written ------------------------------------
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    from nimbus.data.builtin import render_builtin
+    from nimbus.data.io import write_scene
+
+    garden = render_builtin("garden", "tiny", seed=0)
+    return write_scene(garden.with_views(garden.views[:3]), tmp_path_factory.mktemp("scene") / "garden")
+
+
+def _run(main, argv, capsys) -> tuple[int, str]:
+    with pytest.raises(SystemExit) as e:
+        main([str(a) for a in argv])
+    return e.value.code, capsys.readouterr().err
+
+
+@pytest.mark.parametrize("item", ["near_plane=nan", "lr_means_init=inf", "checkpoint_interval=0", "log_interval=0",
+                                  "background=0.5", "iterations=abc"])
+def test_nimbus_train_bad_set_exits_2_with_one_line_and_no_run_folder(tmp_path, scene_dir, capsys, item):
+    from nimbus.cli.train import main
+
+    out = tmp_path / "run"
+    for method in ("3dgs", "nimbus"):
+        code, err = _run(main, [scene_dir, "--method", method, "--preset", "tiny", "--out", out, "--quiet",
+                                "--set", item], capsys)
+        assert code == 2 and "Traceback" not in err
+        assert err.strip().splitlines() == [err.strip()] and err.startswith(f"error: --set {item}: must be ")
+        assert not out.exists()
+
+
+@pytest.mark.parametrize("item", ["haze.beta_range=[1]", "haze.beta=abc", "haze.fog_noise_octaves=0"])
+def test_nimbus_synth_bad_set_exits_2_with_one_line_and_no_output(tmp_path, scene_dir, capsys, item):
+    from weather_synth.cli import main
+
+    out = tmp_path / "bench"
+    code, err = _run(main, ["degrade", scene_dir, "--out", out, "--weather", "H", "--quiet", "--set", item], capsys)
+    assert code == 2 and "Traceback" not in err
+    assert err.strip().splitlines() == [err.strip()] and err.startswith(f"error: --set {item}: must be ")
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == [] and Path(scene_dir).is_dir()
