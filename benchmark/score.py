@@ -35,7 +35,7 @@ from nimbus.data import load_scene
 from nimbus.data.images import read_image
 from nimbus.data.io import format_names, image_size, list_images
 from nimbus.errors import NimbusError
-from nimbus.utils.fs import atomic_write_json, sha256_file
+from nimbus.utils.fs import atomic_write_json, check_output_dir, refuse_overlap, sha256_file
 
 FORMAT = "nimbus-bench-score/1"
 SPLITS = ("test", "train", "all")
@@ -103,6 +103,8 @@ def _ground_truth(scene, scene_dir: Path, views: list, gt_dir: Path | None) -> t
 
 def _renders(pred_dir: Path, views: list) -> tuple[list[Path], Path, int]:
     """Render file of each view, the folder they were found in, and how many render files went unused."""
+    if pred_dir.exists() and not pred_dir.is_dir():
+        raise NimbusError(f"renders folder {pred_dir} is a file; give the folder that holds the renders")
     if not pred_dir.is_dir():
         raise NimbusError(f"renders folder {pred_dir} does not exist")
     index = ImageIndex(pred_dir)
@@ -273,18 +275,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="SSIM protocol: 3dgs (paper), skimage, dmpix (nerfbaselines)")
     p.add_argument("--lpips", choices=LPIPS_NETS + ("none",), default="vgg", help="LPIPS network (vgg: paper)")
     p.add_argument("--downscale", type=int, default=1, help="use the scene's images_<d> folder")
-    p.add_argument("--device", default=None, help="LPIPS device, e.g. cpu or cuda (unset: cuda when available, else cpu)")
+    p.add_argument("--device", default=None,
+                   help="LPIPS device, e.g. cpu or cuda (unset: cuda when available, else cpu)")
     p.add_argument("--out", metavar="FILE", default=None, help="write the results as JSON")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+
+
+def _check_out_file(out: Path, overwrite: bool, inputs: list) -> None:
+    """Refuse a results file that cannot be written, or that would land in (or replace) an input."""
+    # Nothing is written inside what is scored: a results file in the scene or the renders
+    # folder would become one of their files (and --out SCENE/images/x.png would replace one).
+    refuse_overlap(out, inputs, "--out")
+    check_output_dir(out.parent, overwrite=True, flag="--out")  # under a file, read-only, unreadable
+    if out.is_dir():
+        raise NimbusError(f"--out {out} is a folder; give a file name such as results.json")
+    if out.exists() and not overwrite:
+        raise NimbusError(f"--out {out} exists; pass --overwrite to replace it or choose another file")
 
 
 def run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else None
     if out is not None:  # before any work: a bad --out should not cost a scoring run
-        if out.is_dir():
-            raise NimbusError(f"--out {out} is a folder; give a file name such as results.json")
-        if out.exists() and not args.overwrite:
-            raise NimbusError(f"--out {out} exists; pass --overwrite to replace it or choose another file")
+        _check_out_file(out, args.overwrite, [args.pred, args.gt, args.gt_dir])
     t0 = time.perf_counter()
 
     def progress(done: int, total: int) -> None:
@@ -292,9 +304,13 @@ def run(args: argparse.Namespace) -> int:
 
     with warnings.catch_warnings():  # a missing LPIPS is reported below, in the table and in the file
         warnings.simplefilter("ignore", UserWarning)
-        result = score_renders(args.pred, args.gt, split=args.split, ssim_protocol=args.ssim,
-                               lpips_net=None if args.lpips == "none" else args.lpips, gt_dir=args.gt_dir,
-                               downscale=args.downscale, device=args.device, progress=progress)
+        try:
+            result = score_renders(args.pred, args.gt, split=args.split, ssim_protocol=args.ssim,
+                                   lpips_net=None if args.lpips == "none" else args.lpips, gt_dir=args.gt_dir,
+                                   downscale=args.downscale, device=args.device, progress=progress)
+        except PermissionError as e:  # an unreadable --pred / --gt folder or image
+            raise NimbusError(f"{e.filename or 'an input'} cannot be read (permission denied); give read access "
+                              "to the renders and the scene") from None
     print(format_table(result))
     if result["lpips_missing"]:
         print(f"warning: LPIPS is missing; run `{result['setup_command']}` and score again", file=sys.stderr)

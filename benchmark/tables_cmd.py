@@ -30,9 +30,25 @@ def run(args: argparse.Namespace) -> int:
     from benchmark.grid import DEFAULT_METHODS
     from benchmark.store import export_parquet, load_results, store_path
     from benchmark.tables import Written, write_tables
+    from nimbus.utils.fs import check_output_dir, refuse_overlap
 
-    if not store_path(args.root).is_file():
-        raise NimbusError(f"{store_path(args.root)} does not exist; run `nimbus-bench run --root {args.root}` first")
+    root, store = Path(args.root), store_path(args.root)
+    try:
+        if root.exists() and not root.is_dir():
+            raise NimbusError(f"--root {root} is a file; give the benchmark folder that holds results.jsonl")
+        if not store.is_file():
+            raise NimbusError(f"{store} does not exist; run `nimbus-bench run --root {args.root}` first")
+    except PermissionError:
+        raise NimbusError(f"--root {root} cannot be read (permission denied); give read access or choose another "
+                          "--root") from None
+    # The tables fill --out file by file (other files there stay), so a used folder is fine; but
+    # it must be writable, and neither it nor --parquet may be or hold the store they are made from.
+    check_output_dir(args.out, overwrite=True, inputs=[store], flag="--out")
+    if args.parquet:
+        refuse_overlap(args.parquet, [store], "--parquet")
+        check_output_dir(Path(args.parquet).parent, overwrite=True, flag="--parquet")
+        if Path(args.parquet).is_dir():
+            raise NimbusError(f"--parquet {args.parquet} is a folder; give a file name such as results.parquet")
     with warnings.catch_warnings():  # a truncated last line is reported once, below
         warnings.simplefilter("ignore", UserWarning)
         df = load_results(args.root)
