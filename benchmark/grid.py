@@ -20,9 +20,19 @@ Executors
     process writes the store, as each cell's record comes back.
 
 Resumption
-    A cell whose last record is ``ok`` is skipped.  A cell trains into
-    ``runs/<cell-id>.partial`` and is renamed into place before it is scored, so a killed
-    run leaves no half-written run passing for a finished one; a rerun removes leftovers.
+    A cell with an ``ok`` record is skipped (a later error record never hides it; see
+    :mod:`benchmark.store`).  A cell trains into ``runs/<cell-id>.partial`` and is renamed
+    into place before it is scored, so a killed run leaves no half-written run passing for
+    a finished one; a rerun removes leftovers.
+
+Several runs on one root
+    The parent holds each cell's lock (:meth:`benchmark.store.ResultsStore.cell_lock`) from
+    before the cell's folders are touched until its record is stored, and takes the locks of
+    all its cells before it starts: a second run on the same root skips the cells a live run
+    holds (reported as running elsewhere, not failed) and so never removes that run's
+    folders.  A lock whose process has died is free and taken over.  Data preparation waits
+    for another run preparing the same scene (:meth:`~benchmark.store.ResultsStore.data_lock`).
+    Not covered: a Dask task still running on a worker after its parent was killed.
 """
 
 from __future__ import annotations
@@ -43,6 +53,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Protocol, Sequence
 
+from benchmark.store import FileLock, ResultsStore
 from nimbus.errors import NimbusError
 
 #: Seed of the built-in scenes' rendering and of the weather synthesis: fixed, so every
@@ -200,7 +211,9 @@ def prepare_data(root: str | os.PathLike, cells: Iterable[Cell], progress: bool 
     """Render the clean scenes and synthesise the degraded settings the cells need and the root lacks.
 
     Both steps write atomically (a folder appears only when complete) with fixed seeds, so a
-    run interrupted here resumes by simply doing what is still missing.
+    run interrupted here resumes by simply doing what is still missing.  Each scene's data is
+    prepared under its data lock: a second run waits for the first, then finds the data
+    there, instead of replacing folders the first one's cells are reading.
     """
     from nimbus.data.builtin import write_builtin
     from nimbus.data.io import load_scene
@@ -214,20 +227,31 @@ def prepare_data(root: str | os.PathLike, cells: Iterable[Cell], progress: bool 
         key = Cell(c.scene, "", "", size=c.size)
         if c.weather not in need.setdefault(key, []):
             need[key].append(c.weather)
+    store = ResultsStore(root)
     for key, weathers in need.items():
-        clean = scene_dir(root, key)
-        if not (clean / "manifest.json").is_file():
+        lock = store.data_lock(key.data_name)
+        if not lock.acquire():
+            holder = lock.holder()
             if log:
-                log(f"rendering built-in scene {key.scene} ({key.size}) -> {clean}")
-            write_builtin(key.scene, clean, key.size, seed=SCENE_SEED, overwrite=True, progress=progress)
-        out = root / "data" / key.data_name
-        missing = [w for w in weathers if not (out / w / MANIFEST).is_file()]
-        if missing:
-            if log:
-                log(f"synthesising {', '.join(missing)} for {key.data_name} -> {out}")
-            degrade_scene(load_scene(clean), out, [parse_setting(w) for w in missing],
-                          protocol_config(SYNTH_PROTOCOL, SYNTH_SEED), overwrite=True, progress=progress,
-                          source=f"builtin:{key.scene}:{key.size}")
+                log(f"waiting for another run ({holder.describe() if holder else 'another process'}) preparing "
+                    f"the data of {key.data_name}")
+            lock.acquire(wait=True)
+        try:
+            clean = scene_dir(root, key)
+            if not (clean / "manifest.json").is_file():
+                if log:
+                    log(f"rendering built-in scene {key.scene} ({key.size}) -> {clean}")
+                write_builtin(key.scene, clean, key.size, seed=SCENE_SEED, overwrite=True, progress=progress)
+            out = root / "data" / key.data_name
+            missing = [w for w in weathers if not (out / w / MANIFEST).is_file()]
+            if missing:
+                if log:
+                    log(f"synthesising {', '.join(missing)} for {key.data_name} -> {out}")
+                degrade_scene(load_scene(clean), out, [parse_setting(w) for w in missing],
+                              protocol_config(SYNTH_PROTOCOL, SYNTH_SEED), overwrite=True, progress=progress,
+                              source=f"builtin:{key.scene}:{key.size}")
+        finally:
+            lock.release()
 
 
 # --- one cell ----------------------------------------------------------------------------------
@@ -335,10 +359,7 @@ def _run_cell(cell: Cell, root: Path, options: CellOptions) -> dict:
     if not (data / MANIFEST).is_file():
         raise NimbusError(f"{data} is missing; the grid runner prepares it before training (is ROOT shared "
                           "with the workers?)")
-    final, partial = run_dir(root, cell), run_dir(root, cell).with_name(cell.cell_id + PARTIAL_SUFFIX)
-    for leftover in (partial, final):  # from an interrupted or failed earlier attempt
-        if leftover.exists():
-            shutil.rmtree(leftover)
+    final, partial = clear_run_dirs(root, cell)
     scene = load_scene(data)
     trainer = method.trainer()(scene, config, partial, seed=cell.seed, scene_path=str(data.resolve()),
                                progress=False, device=torch.device(options.device) if options.device else None)
@@ -371,6 +392,20 @@ def _run_cell(cell: Cell, root: Path, options: CellOptions) -> dict:
     if "components" in results:
         out["components"] = results["components"]
     return out
+
+
+def clear_run_dirs(root: Path, cell: Cell) -> tuple[Path, Path]:
+    """Remove what an interrupted or failed earlier attempt left of a cell; its final and partial run folders.
+
+    Only the holder of the cell's lock may call this (:func:`run_grid` holds it for every cell it
+    runs): another run's cell in flight is never removed.
+    """
+    final = run_dir(root, cell)
+    partial = final.with_name(cell.cell_id + PARTIAL_SUFFIX)
+    for leftover in (partial, final):
+        if leftover.exists():
+            shutil.rmtree(leftover)
+    return final, partial
 
 
 def _param_count(trainer, results: dict, config) -> tuple[int | None, str]:
@@ -521,10 +556,21 @@ def make_executor(name: str, jobs: int = 1, scheduler: str | None = None) -> Exe
 # --- the grid -------------------------------------------------------------------------------------
 @dataclass
 class GridOutcome:
-    """What :func:`run_grid` did: records of the cells it ran, and the ids it skipped as finished."""
+    """What :func:`run_grid` did.
+
+    Attributes
+    ----------
+    ran : list of dict
+        Records of the cells this run ran (ok or error).
+    skipped : list of str
+        Ids of cells skipped because they already have an ``ok`` record.
+    running_elsewhere : dict of str to str
+        Ids of cells left to another live run that holds their lock, with who holds it.
+    """
 
     ran: list[dict]
     skipped: list[str]
+    running_elsewhere: dict[str, str] = dataclasses.field(default_factory=dict)
 
     @property
     def failed(self) -> list[dict]:
@@ -554,12 +600,12 @@ def run_grid(cells: Sequence[Cell], root: str | os.PathLike, executor: Executor 
     ----------
     cells : sequence of Cell
     root : path
-        Benchmark root (see the module docstring).
+        Benchmark root (see the module docstring); an existing one is reused.
     executor : Executor, optional
         Default :class:`LocalExecutor` with one job.
     options : CellOptions, optional
     rerun : bool
-        Run cells that already have an ``ok`` record too (a new record supersedes the old).
+        Run cells that already have an ``ok`` record too (a new ``ok`` record supersedes the old).
     progress : bool
         tqdm bar over cells on stderr.
     log : callable(str), optional
@@ -568,32 +614,83 @@ def run_grid(cells: Sequence[Cell], root: str | os.PathLike, executor: Executor 
     Returns
     -------
     GridOutcome
+        Cells whose lock another live run holds are left to it (``running_elsewhere``).
+
+    Raises
+    ------
+    NimbusError
+        ``root`` is a file, lies under one, or cannot be written.
     """
     from tqdm import tqdm
 
-    from benchmark.store import ResultsStore
+    from nimbus.utils.fs import check_output_dir
 
     root = Path(root)
+    check_output_dir(root, overwrite=True, flag="--root")  # a root is meant to be reused: not-empty is fine
     options = options or CellOptions()
     executor = executor or LocalExecutor()
     store = ResultsStore(root)
-    done = set() if rerun else store.finished()
-    todo = [c for c in cells if c.cell_id not in done]
-    skipped = [c.cell_id for c in cells if c.cell_id in done]
-    bar = tqdm(total=len(todo), desc="cells", unit="cell", file=sys.stderr, disable=not progress or not todo,
-               dynamic_ncols=True)
-    say = log or (lambda s: bar.write(s, file=sys.stderr))
-    if skipped:
-        say(f"skipping {len(skipped)} finished cell(s) already in {store.path}")
-    ran = []
+    locks: dict[str, FileLock] = {}
+    bar = None
     try:
+        skipped, elsewhere = _claim_cells(store, cells, rerun, locks)
+        todo = [c for c in cells if c.cell_id in locks]
+        bar = tqdm(total=len(todo), desc="cells", unit="cell", file=sys.stderr, disable=not progress or not todo,
+                   dynamic_ncols=True)
+        say = log or (lambda s: bar.write(s, file=sys.stderr))
+        if skipped:
+            say(f"skipping {len(skipped)} finished cell(s) already in {store.path}")
+        if elsewhere:
+            say(f"leaving {len(elsewhere)} cell(s) to another run on {root} that is running them "
+                f"({'; '.join(sorted(set(elsewhere.values())))}): {', '.join(elsewhere)}")
+        ran = []
         if todo:
             prepare_data(root, todo, progress=False, log=say)
-            for rec in executor.imap(todo, str(root), options):
-                store.append(rec)  # the parent is the only writer
-                ran.append(rec)
-                say(format_cell_line(rec, len(ran), len(todo)))
-                bar.update(1)
+            records = executor.imap(todo, str(root), options)
+            try:
+                for rec in records:
+                    store.append(rec)
+                    lock = locks.pop(rec["cell_id"], None)
+                    if lock is not None:  # only once its record is stored: a run that gets it then sees it done
+                        lock.release()
+                    ran.append(rec)
+                    say(format_cell_line(rec, len(ran), len(todo)))
+                    bar.update(1)
+            finally:
+                # Stop the executor (its workers may still write run folders) before the locks go.
+                close = getattr(records, "close", None)
+                if close is not None:
+                    close()
     finally:
-        bar.close()
-    return GridOutcome(ran, skipped)
+        for lock in locks.values():
+            lock.release()
+        if bar is not None:
+            bar.close()
+    return GridOutcome(ran, skipped, elsewhere)
+
+
+def _claim_cells(store: ResultsStore, cells: Sequence[Cell], rerun: bool,
+                 locks: dict[str, FileLock]) -> tuple[list[str], dict[str, str]]:
+    """Take the lock of every cell to run into ``locks``; the ids skipped as finished, and those held elsewhere.
+
+    The store is read again once the locks are held: a cell that another run finished after
+    the first look (its record is stored before its lock is released) is skipped, not rerun
+    over that run's finished folder.
+    """
+    done = set() if rerun else store.finished()
+    elsewhere = {}
+    for c in cells:
+        if c.cell_id in done or c.cell_id in locks:
+            continue
+        lock = store.cell_lock(c.cell_id)
+        if lock.acquire():
+            locks[c.cell_id] = lock
+        else:
+            holder = lock.holder()
+            elsewhere[c.cell_id] = holder.describe() if holder else "another process"
+    if not rerun:
+        done = store.finished()
+        for cid in [cid for cid in locks if cid in done]:
+            locks.pop(cid).release()
+        elsewhere = {cid: h for cid, h in elsewhere.items() if cid not in done}
+    return [c.cell_id for c in cells if c.cell_id in done], elsewhere

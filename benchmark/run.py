@@ -3,6 +3,10 @@
 With no arguments this is the default benchmark: both built-in scenes at the tiny size,
 all seven weather settings, NimbusGS (when registered) and 3DGS with the tiny preset,
 seed 0, into ``bench_runs/``.  Rerunning skips finished cells (see :mod:`benchmark.grid`).
+
+Two runs may share a root: each leaves the cells the other is running to it and lists them
+as running elsewhere (not failed).  Exit status: 0 when every cell has a result, 1 when a
+cell failed or was left to another run that has not finished it yet, 2 for bad input.
 """
 
 from __future__ import annotations
@@ -39,7 +43,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ssim", choices=tuple(SSIM_PROTOCOLS), default="3dgs", help="SSIM protocol (3dgs: paper)")
     p.add_argument("--lpips", choices=LPIPS_NETS + ("none",), default="vgg", help="LPIPS network (vgg: paper)")
     p.add_argument("--device", default=None, help="torch device for training (default: cuda if available, else cpu)")
-    p.add_argument("--rerun", action="store_true", help="run finished cells again (new records supersede old)")
+    p.add_argument("--rerun", action="store_true",
+                   help="run finished cells again (a new result supersedes the old; a failed retry keeps the old one)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -80,11 +85,16 @@ def run(args: argparse.Namespace) -> int:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         df = load_results(args.root)
-    ids = {c.cell_id for c in cells}
+    # A cell another run is working on is not this run's to report: an old error record of it
+    # would count as a failure here while it may well be finishing there.
+    ids = {c.cell_id for c in cells} - set(outcome.running_elsewhere)
     df = df[df["cell_id"].isin(ids)]
     print(summary_table(df, methods))
     if outcome.failed:
         print(f"{len(outcome.failed)} cell(s) failed; rerun the same command to retry them "
               f"(errors are in {args.root}/results.jsonl)", file=sys.stderr)
-        return 1
-    return 0
+    if outcome.running_elsewhere:
+        print(f"{len(outcome.running_elsewhere)} cell(s) not in this table: another run on {args.root} is running "
+              "them (running elsewhere, not failed); rerun the same command after it ends to see them here",
+              file=sys.stderr)
+    return 1 if outcome.failed or outcome.running_elsewhere else 0

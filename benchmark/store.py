@@ -1,28 +1,57 @@
-"""The benchmark's results store: one JSON line per finished cell, appended crash-safely.
+"""The benchmark's results store: one JSON line per finished cell, and the locks that let runs share it.
 
-Layout: ``ROOT/results.jsonl``.  Each line is one record (see :func:`benchmark.grid.run_cell`
-for the fields); a cell run twice (after an error, or with ``--rerun``) has several
-records, and the last one counts.
+Layout::
+
+    ROOT/results.jsonl          one record per finished cell attempt (see :func:`benchmark.grid.run_cell`)
+    ROOT/locks/<cell-id>.lock   held while a run works on that cell (:class:`FileLock`)
+    ROOT/locks/data-<name>.lock held while a run renders or synthesises that scene's data
+
+Which record counts
+    A cell run twice (after an error, or with ``--rerun``) has several records.  The one
+    that counts is the cell's latest ``ok`` record; a cell that never finished shows its
+    latest record (an error).  A later error never hides a result: an error says that an
+    attempt failed (a crash, a killed worker, a run another one disturbed), not that the
+    earlier figures are wrong, so a failed retry must not throw a good result away.  A
+    later ``ok`` supersedes an earlier one (``--rerun``).  To drop a result for good,
+    delete its line from ``results.jsonl``.
+
+Several runs on one root
+    Two ``nimbus-bench run`` (or ``tradeoff``) on one root share it safely.  A run holds
+    the lock of every cell it works on, from before it looks at the cell's folders until
+    the cell's record is in the store; a second run skips cells whose lock is held
+    ("running elsewhere") and never touches their folders.  The locks are
+    ``fcntl.flock`` locks, which the kernel drops when the holding process ends however
+    it ends, so the lock of a killed run is free at once; the file only names the holder
+    (pid, host, start time) for messages.  On NFS this needs a mount with locking
+    (the default); the workers of a Dask run do not lock, their parent does.
 
 Crash safety
-    Only one process writes the store (the grid runner's parent).  A record is
-    serialised first, then written with a single ``write`` of the whole line followed by
-    ``flush`` and ``fsync``, so a killed run leaves at worst a truncated *last* line.
-    Readers ignore a last line that is not complete JSON; the writer cuts such a line
-    off before appending, so a torn record can never be glued to the next one.
+    A record is serialised first, then appended with one ``os.write`` of the whole line
+    (``O_APPEND``) while holding an exclusive lock on the file, then ``fsync``-ed, so
+    lines of concurrent writers never interleave and a killed run leaves at worst a
+    truncated *last* line.  Readers ignore a last line that is not complete JSON; the
+    writer cuts such a line off (under the same lock) before appending, so a torn
+    record can never be glued to the next one.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import fcntl
 import json
 import os
+import socket
 import warnings
+from dataclasses import dataclass
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Iterator
 
 from nimbus.errors import NimbusError
 
 STORE_FILE = "results.jsonl"
+LOCK_DIR = "locks"
 RECORD_FORMAT = "nimbus-bench-cell/1"
 #: Columns of :func:`load_results` taken from each record as is (the rest stay in ``record``).
 SCALAR_COLUMNS = (
@@ -31,11 +60,26 @@ SCALAR_COLUMNS = (
     "num_gaussians", "num_params", "render_fps", "iterations", "config_hash", "input_sha256",
     "started_at", "finished_at",
 )
+# flock fails with these where the file system has no locking (an NFS mount with nolock, some FUSE).
+_NO_LOCKING = (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS)
 
 
 def store_path(root: str | os.PathLike) -> Path:
     """The results file of a benchmark root (``ROOT/results.jsonl``)."""
     return Path(root) / STORE_FILE
+
+
+def counting_records(records: Iterator[dict] | list[dict]) -> dict[str, dict]:
+    """The record that counts for each cell, by ``cell_id`` (module docstring, "Which record counts").
+
+    The latest ``ok`` record of a cell; for a cell without one, its latest record.
+    """
+    out: dict[str, dict] = {}
+    for rec in records:
+        cid = rec["cell_id"]
+        if rec.get("status") == "ok" or out.get(cid, {}).get("status") != "ok":
+            out[cid] = rec
+    return out
 
 
 class ResultsStore:
@@ -57,51 +101,198 @@ class ResultsStore:
         return list(_read_lines(self.path))
 
     def latest(self) -> dict[str, dict]:
-        """The last record of each cell, by ``cell_id``."""
-        out: dict[str, dict] = {}
-        for rec in self.records():
-            out[rec["cell_id"]] = rec
-        return out
+        """The record that counts for each cell, by ``cell_id``: its latest ``ok`` one, else its latest one."""
+        return counting_records(self.records())
 
     def finished(self) -> set[str]:
-        """Cell ids whose last record has ``status == "ok"`` (what a resumed run skips)."""
+        """Cell ids with an ``ok`` record (what a resumed run skips)."""
         return {cid for cid, rec in self.latest().items() if rec.get("status") == "ok"}
 
     # --- writing -----------------------------------------------------------------------
     def append(self, record: dict) -> None:
-        """Append one record durably (one write, flush, fsync); repairs a torn last line first."""
+        """Append one record durably: one ``os.write`` of the whole line under an exclusive lock, then fsync.
+
+        A torn last line (a writer killed mid-write) is cut off first, under the same lock, so
+        it can never be glued to this record and no concurrent writer's line is cut instead.
+        """
         if "cell_id" not in record:
             raise ValueError("a record needs a cell_id")
         line = (json.dumps(record, sort_keys=True, allow_nan=False) + "\n").encode()
         self.root.mkdir(parents=True, exist_ok=True)
-        self._repair_tail()
-        with open(self.path, "ab") as f:
-            f.write(line)
-            f.flush()
-            os.fsync(f.fileno())
+        fd = os.open(self.path, os.O_RDWR | os.O_APPEND | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        try:
+            _flock(fd, fcntl.LOCK_EX, self.path)
+            self._repair_tail(fd)
+            written = os.write(fd, line)
+            if written != len(line):  # a full disk; the next append cuts the partial line off
+                raise OSError(errno.ENOSPC, f"{self.path}: wrote {written} of {len(line)} bytes of a record")
+            os.fsync(fd)
+        finally:
+            os.close(fd)  # also drops the lock
 
-    def _repair_tail(self) -> None:
+    def _repair_tail(self, fd: int) -> None:
         """Cut off a last line without its newline: the remains of a write a crash interrupted."""
-        if not self.path.exists() or self.path.stat().st_size == 0:
+        size = os.fstat(fd).st_size
+        if size == 0 or os.pread(fd, 1, size - 1) == b"\n":
             return
-        with open(self.path, "rb+") as f:
-            f.seek(-1, os.SEEK_END)
-            if f.read(1) == b"\n":
-                return
-            f.seek(0)
-            content = f.read()
-            keep = content.rfind(b"\n") + 1
-            f.truncate(keep)
-            f.flush()
-            os.fsync(f.fileno())
-        warnings.warn(f"{self.path}: dropped a truncated last record ({len(content) - keep} bytes) left by an "
+        content = os.pread(fd, size, 0)
+        keep = content.rfind(b"\n") + 1
+        os.ftruncate(fd, keep)
+        os.fsync(fd)
+        warnings.warn(f"{self.path}: dropped a truncated last record ({size - keep} bytes) left by an "
                       "interrupted run", stacklevel=3)
+
+    # --- locks -------------------------------------------------------------------------
+    def cell_lock(self, cell_id: str) -> "FileLock":
+        """The lock a run holds while it works on a cell (its run folder and its record)."""
+        return FileLock(self.root / LOCK_DIR / f"{cell_id}.lock")
+
+    def data_lock(self, name: str) -> "FileLock":
+        """The lock a run holds while it renders or synthesises the data of one scene (``garden-tiny``)."""
+        return FileLock(self.root / LOCK_DIR / f"data-{name}.lock")
+
+
+@dataclass(frozen=True)
+class LockHolder:
+    """Who holds a :class:`FileLock`, as its file records it.
+
+    Attributes
+    ----------
+    pid : int
+        Process id of the holder (on ``host``).
+    host : str
+        Host name of the holder.
+    started_at : str
+        When it took the lock (UTC, ISO 8601).
+    """
+
+    pid: int
+    host: str
+    started_at: str
+
+    def describe(self) -> str:
+        return f"pid {self.pid} on {self.host}, since {self.started_at}"
+
+
+class FileLock:
+    """An exclusive lock on a file (``fcntl.flock``) that one process at a time can hold.
+
+    The kernel drops the lock when the holding process ends, however it ends, so a lock
+    left behind by a killed run is free at once: its file (naming a dead process) is
+    simply taken over.  A stale lock therefore never needs an age rule or a hand clean-up,
+    unlike a lock that is a file's mere existence.  While held, the file records the holder
+    (:class:`LockHolder`) so that a run that finds it taken can say by whom.  ``release``
+    removes the file.
+
+    Parameters
+    ----------
+    path : path
+        The lock file (its folder is created on acquire).
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        self._fd: int | None = None
+
+    @property
+    def held(self) -> bool:
+        """Whether this object holds the lock."""
+        return self._fd is not None
+
+    def acquire(self, wait: bool = False) -> bool:
+        """Take the lock; True on success.  ``wait=False`` returns False at once when another holds it.
+
+        Raises
+        ------
+        NimbusError
+            The file system does not support locks.
+        """
+        if self._fd is not None:
+            raise RuntimeError(f"{self.path} is already held by this lock object")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            try:
+                if not _flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB), self.path):
+                    os.close(fd)
+                    return False
+                # The previous holder removes the file on release; if it did so after we opened
+                # it, we now lock a file no one else can see: start over on the current one.
+                try:
+                    current = os.path.samestat(os.fstat(fd), os.stat(self.path))
+                except FileNotFoundError:
+                    current = False
+                if not current:
+                    os.close(fd)
+                    continue
+                me = {"pid": os.getpid(), "host": socket.gethostname(),
+                      "started_at": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, (json.dumps(me) + "\n").encode(), 0)
+            except BaseException:
+                os.close(fd)
+                raise
+            self._fd = fd
+            return True
+
+    def release(self) -> None:
+        """Give the lock up and remove its file (nothing happens when not held)."""
+        if self._fd is None:
+            return
+        # Unlink while still holding the lock: a process that opened the file meanwhile finds it
+        # unlinked once it gets the lock and starts over (see acquire), so no two hold at once.
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(self.path)
+        os.close(self._fd)
+        self._fd = None
+
+    def holder(self) -> LockHolder | None:
+        """The holder the file names (None when there is no file or it is being written)."""
+        try:
+            d = json.loads(self.path.read_text())
+            return LockHolder(int(d["pid"]), str(d["host"]), str(d["started_at"]))
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+
+    def __enter__(self) -> "FileLock":
+        self.acquire(wait=True)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def _flock(fd: int, op: int, path: Path) -> bool:
+    """``fcntl.flock``; False when non-blocking and held elsewhere, NimbusError where there is no locking."""
+    try:
+        fcntl.flock(fd, op)
+    except BlockingIOError:
+        return False
+    except OSError as e:
+        if e.errno in _NO_LOCKING:
+            raise NimbusError(f"the file system holding {path} does not support file locks ({e.strerror}), which "
+                              "runs sharing a benchmark root need; put --root on a local disk or an NFS mount with "
+                              "locking") from None
+        raise
+    return True
 
 
 def _read_lines(path: Path) -> Iterator[dict]:
-    if not path.exists():
-        return
-    lines = path.read_bytes().split(b"\n")
+    try:
+        if not path.is_file():
+            if path.exists():
+                raise NimbusError(f"{path} is not a file; a benchmark root holds its results in a results.jsonl file")
+            return
+        with open(path, "rb") as f:
+            # A shared lock waits for an append in progress, so a record being written is not
+            # mistaken for a torn one; where there is no locking, read anyway.
+            with contextlib.suppress(OSError):
+                fcntl.flock(f.fileno(), fcntl.LOCK_SH)
+            data = f.read()
+    except PermissionError:
+        raise NimbusError(f"{path} cannot be read (permission denied); give read access or choose another "
+                          "--root") from None
+    lines = data.split(b"\n")
     # A complete file ends with a newline, so the last element is b"".  Anything else
     # there is a record a crash cut short: ignored, never half-parsed.
     *complete, tail = lines
@@ -129,7 +320,8 @@ def load_results(root: str | os.PathLike, latest: bool = True, status: str | Non
     root : path
         Benchmark root (holding ``results.jsonl``) or the ``.jsonl`` file itself.
     latest : bool
-        Keep only the last record of each cell (default); False keeps every record.
+        Keep only the record that counts for each cell (default: its latest ``ok`` record, else
+        its latest one; see the module docstring); False keeps every record, in file order.
     status : {"ok", "error"}, optional
         Keep only records with this status.
 
@@ -153,7 +345,7 @@ def load_results(root: str | os.PathLike, latest: bool = True, status: str | Non
 
 
 def export_parquet(root: str | os.PathLike, out: str | os.PathLike) -> Path:
-    """Write the latest records' scalar columns (and per-view values as JSON text) as Parquet, atomically."""
+    """Write the counting records' scalar columns (and per-view values as JSON text) as Parquet, atomically."""
     import io
 
     from nimbus.utils.fs import atomic_write_bytes
