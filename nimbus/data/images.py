@@ -9,6 +9,7 @@ stored as ``.npy``; 16-bit PNG depth (millimetres by default) is also read.
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 
@@ -18,6 +19,10 @@ import numpy as np
 from nimbus.errors import NimbusError
 from nimbus.utils.fs import atomic_write_bytes
 
+log = logging.getLogger(__name__)
+
+# Largest share of pixels a depth map may mark as "no depth" (NaN or 0) before it is refused.
+MAX_NO_DEPTH_FRACTION = 0.5
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG", ".tif", ".tiff", ".bmp")
 
 
@@ -88,30 +93,69 @@ def write_image(path: str | os.PathLike, img: np.ndarray) -> Path:
 
 
 def read_depth(path: str | os.PathLike, png_scale: float = 1000.0) -> np.ndarray:
-    """Read a z-depth map as float32 (H, W).
+    """Read a z-depth map as float32 (H, W), ``inf`` where there is no surface.
 
-    ``.npy`` holds depth in scene units; a 16-bit PNG holds ``depth * png_scale``
-    (millimetres for metric scenes).  Zero in a PNG means "no depth" and becomes inf.
+    ``.npy`` holds depth in scene units (loaded with ``allow_pickle=False``: a depth file never
+    runs code); a 16-bit PNG holds ``depth * png_scale`` (millimetres for metric scenes).
+
+    What counts as a depth, decided here for every depth file Nimbus reads:
+
+    * ``inf`` is the one "no surface" value (sky, backdrop) and is kept.
+    * NaN and 0 mean "no depth here" (a sensor hole; 0 is also the PNG convention): a z-depth
+      of 0 cannot be a visible surface.  They are read as ``inf`` when they are a minority of
+      the pixels (at most :data:`MAX_NO_DEPTH_FRACTION`).  A map that is mostly NaN / 0 is
+      refused: reading it as mostly sky would silently give wrong haze (it is a sparse or
+      broken map; densify it, or remove it and use ``--depth sparse``).
+    * A negative value (or ``-inf``) is refused: it means a flipped sign convention or a
+      disparity / inverse-depth map, not a z-depth.
+    * A map with no finite depth at all (every pixel ``inf``) is accepted as all sky, with a
+      one-line warning on stderr (logging) naming the file.
     """
     path = Path(path)
     if not path.is_file():
         raise NimbusError(f"depth map {path} does not exist")
     if path.suffix.lower() == ".npy":
         try:
-            d = np.load(path, allow_pickle=False)
-        except (ValueError, OSError) as e:
-            raise NimbusError(f"depth map {path} is unreadable ({e}); save it with numpy.save") from None
-        d = np.squeeze(d).astype(np.float32)
+            # Memory-mapped so that a header declaring a huge shape fails on the file size, not on allocation.
+            raw = np.load(path, allow_pickle=False, mmap_mode="r")
+            if not isinstance(raw, np.ndarray):  # an .npz archive under an .npy name
+                raw.close()
+                raise ValueError("it is an .npz archive, not one array")
+            if raw.dtype.kind not in "biuf":
+                raise ValueError(f"it holds {raw.dtype} values, not real numbers")
+            d = np.array(np.squeeze(raw), dtype=np.float32)
+            del raw
+        except (ValueError, OSError, EOFError) as e:
+            raise NimbusError(f"depth map {path} is unreadable ({e}); save it with numpy.save as a float "
+                              "array") from None
     elif path.suffix.lower() == ".png":
         raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
             raise NimbusError(f"depth map {path} must be a single-channel 16-bit PNG")
         d = raw.astype(np.float32) / np.float32(png_scale)
-        d[raw == 0] = np.inf
     else:
         raise NimbusError(f"depth map {path}: unsupported format; use .npy (float) or 16-bit .png")
-    if d.ndim != 2:
+    if d.ndim != 2 or d.size == 0:
         raise NimbusError(f"depth map {path} has shape {d.shape}; expected (H, W)")
+    return _no_depth_as_inf(d, path)
+
+
+def _no_depth_as_inf(d: np.ndarray, path: Path) -> np.ndarray:
+    """Apply :func:`read_depth`'s rules: refuse negative and mostly-missing maps, NaN / 0 -> inf."""
+    negative = d < 0
+    if negative.any():
+        raise NimbusError(f"depth map {path} has {int(negative.sum())} negative value(s) (min {float(d.min()):g}); "
+                          "depths must be z-depths >= 0 in scene units (a negative map is usually a flipped sign "
+                          "or a disparity map): fix the file, or remove it and use --depth sparse")
+    missing = np.isnan(d) | (d == 0)
+    fraction = float(missing.mean())
+    if fraction > MAX_NO_DEPTH_FRACTION:
+        raise NimbusError(f"depth map {path} has no depth (NaN or 0) at {fraction:.0%} of its pixels; Nimbus needs a "
+                          "dense z-depth map (inf = sky): densify it, or remove it and use --depth sparse")
+    if missing.any():
+        d = np.where(missing, np.float32(np.inf), d)
+    if not np.isfinite(d).any():
+        log.warning("depth map %s has no finite depth: the whole view is read as sky (no surface)", path)
     return d
 
 
