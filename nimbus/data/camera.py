@@ -26,6 +26,30 @@ import numpy as np
 
 from nimbus.errors import NimbusError
 
+# How far R @ R.T may be from the identity (entry-wise): rounding in files written with ~7 digits.
+ROTATION_TOLERANCE = 1e-5
+
+
+def finite_value(value: object, name: str) -> float:
+    """``value`` as a finite float; NimbusError naming ``name`` for NaN, inf, a string, a bool or None."""
+    if isinstance(value, (str, bytes, bool, np.bool_)) or value is None:
+        raise NimbusError(f"camera {name} must be a number, got {value!r}")
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise NimbusError(f"camera {name} must be a number, got {value!r}") from None
+    if not np.isfinite(v):
+        raise NimbusError(f"camera {name} must be finite, got {v}")
+    return v
+
+
+def image_size_value(value: object, name: str) -> int:
+    """``value`` as a positive int pixel count (an integral float such as 640.0 is accepted)."""
+    v = finite_value(value, name)
+    if v <= 0 or v != int(v):
+        raise NimbusError(f"camera {name} must be a positive whole number of pixels, got {value!r}")
+    return int(v)
+
 
 @dataclass(frozen=True, eq=False)
 class Camera:
@@ -53,23 +77,26 @@ class Camera:
     t: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def __post_init__(self) -> None:
-        R = np.asarray(self.R, dtype=np.float64).reshape(3, 3)
-        t = np.asarray(self.t, dtype=np.float64).reshape(3)
+        # Validated here, once, because a NaN principal point or an inf focal length does not fail
+        # anywhere later: it renders nothing, trains on nothing and still reports a PSNR.
+        object.__setattr__(self, "width", image_size_value(self.width, "width"))
+        object.__setattr__(self, "height", image_size_value(self.height, "height"))
+        for name in ("fx", "fy", "cx", "cy"):
+            object.__setattr__(self, name, finite_value(getattr(self, name), name))
+        if not (self.fx > 0 and self.fy > 0):
+            raise NimbusError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        try:
+            R = np.array(self.R, dtype=np.float64).reshape(3, 3)
+            t = np.array(self.t, dtype=np.float64).reshape(3)
+        except (TypeError, ValueError):
+            raise NimbusError("camera pose must be a 3x3 rotation and a 3-vector translation of numbers") from None
         R.setflags(write=False)
         t.setflags(write=False)
         object.__setattr__(self, "R", R)
         object.__setattr__(self, "t", t)
-        object.__setattr__(self, "width", int(self.width))
-        object.__setattr__(self, "height", int(self.height))
-        for name in ("fx", "fy", "cx", "cy"):
-            object.__setattr__(self, name, float(getattr(self, name)))
-        if self.width <= 0 or self.height <= 0:
-            raise NimbusError(f"camera size must be positive, got {self.width}x{self.height}")
-        if not (self.fx > 0 and self.fy > 0):
-            raise NimbusError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
         if not np.all(np.isfinite(R)) or not np.all(np.isfinite(t)):
             raise NimbusError("camera pose contains NaN or inf")
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
+        if not np.allclose(R @ R.T, np.eye(3), atol=ROTATION_TOLERANCE) or np.linalg.det(R) < 0:
             raise NimbusError("camera rotation is not a proper rotation matrix")
 
     # --- construction -------------------------------------------------------------
