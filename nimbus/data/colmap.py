@@ -9,6 +9,12 @@ Layout read
 ``depths/``, ``masks/``, ``train_list.txt`` / ``test_list.txt`` (see
 :mod:`nimbus.data.io`).
 
+Files received from elsewhere are not trusted: every image name must stay inside
+the scene folder (:func:`nimbus.data.scene.scene_file`), a binary model's
+structure is checked against its file sizes before pycolmap reads it
+(:func:`check_binary_model`), every camera value and pose is validated
+(:class:`nimbus.data.camera.Camera`) and the sparse points must be finite.
+
 Camera models: ``SIMPLE_PINHOLE`` and ``PINHOLE`` are read as they are;
 ``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV`` and ``FULL_OPENCV`` only when all their
 distortion parameters are zero.  Anything else is refused with the command that
@@ -25,8 +31,11 @@ needs only xyz and colour).  Also ``depths/``, ``masks/`` and the split lists.
 
 from __future__ import annotations
 
+import functools
 import logging
+import mmap
 import os
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -36,12 +45,13 @@ from nimbus.data.camera import Camera
 from nimbus.data.io import (
     attach_aux_files,
     check_image_sizes,
+    check_points_finite,
     format_names,
     list_images,
     scaled_to_image,
     write_view_files,
 )
-from nimbus.data.scene import Scene, View, llff_test_names, read_split_lists
+from nimbus.data.scene import Scene, View, llff_test_names, read_split_lists, scene_file
 from nimbus.errors import NimbusError
 
 log = logging.getLogger(__name__)
@@ -61,20 +71,264 @@ def find_sparse_dir(root: str | os.PathLike) -> Path | None:
     return None
 
 
+def model_suffix(sparse_dir: str | os.PathLike) -> str:
+    """``".bin"`` when pycolmap will read the binary files (all three exist), else ``".txt"``."""
+    return ".bin" if all((Path(sparse_dir) / f"{n}.bin").is_file() for n in ("cameras", "images", "points3D")) \
+        else ".txt"
+
+
 def read_reconstruction(sparse_dir: str | os.PathLike) -> pycolmap.Reconstruction:
-    """Load a COLMAP model folder; unreadable files raise NimbusError naming the folder."""
+    """Load a COLMAP model folder; unreadable files raise NimbusError naming the file.
+
+    A binary model is checked against its file sizes first (:func:`check_binary_model`):
+    pycolmap trusts the counts in the files and would allocate whatever a corrupt one declares.
+    """
     sparse_dir = Path(sparse_dir)
+    binary = model_suffix(sparse_dir) == ".bin"
+    if binary:
+        check_binary_model(sparse_dir)
     try:
         return pycolmap.Reconstruction(sparse_dir)
-    except Exception as e:  # pycolmap raises assorted C++ exceptions (ValueError, RuntimeError)
+    except Exception as e:  # pycolmap raises assorted C++ exceptions (ValueError, RuntimeError, IndexError)
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        where = None if binary else locate_text_model_error(sparse_dir)
+        if where is not None:
+            raise NimbusError(f"COLMAP model file {where} is unreadable; fix that line or re-export the model "
+                              "from COLMAP") from None
         raise NimbusError(f"COLMAP model in {sparse_dir} is unreadable ({first}); re-export it from COLMAP") from None
 
 
-def camera_from_colmap(cam: pycolmap.Camera, cam_from_world: np.ndarray, sparse_dir: Path | str = "") -> Camera:
+# --- binary model check ----------------------------------------------------------------
+# Fixed bytes of one record (ids, poses, counts) in COLMAP's binary files; see COLMAP's
+# src/colmap/scene/reconstruction_io_binary.cc.
+_POSE_BYTES = 7 * 8  # quaternion wxyz + translation, float64
+_CAMERA_BYTES = 4 + 4 + 8 + 8  # camera_id u32, model_id i32, width u64, height u64 (+ params f64)
+_IMAGE_BYTES = 4 + _POSE_BYTES + 4  # image_id, cam_from_world, camera_id (+ name, NUL, count, points)
+_POINT2D_BYTES = 8 + 8 + 8  # x, y f64, point3D_id u64
+_POINT3D_BYTES = 8 + 3 * 8 + 3 + 8  # point3D_id u64, xyz f64, rgb u8, error f64 (+ track length u64)
+_TRACK_ELEMENT_BYTES = 4 + 4  # image_id u32, point2D_idx u32
+_RIG_BYTES = 4 + 4  # rig_id, num_sensors (+ sensors)
+_SENSOR_BYTES = 4 + 4  # sensor type i32, sensor id u32
+_FRAME_BYTES = 4 + 4 + _POSE_BYTES + 4  # frame_id, rig_id, rig_from_world, num_data_ids (+ data ids)
+_DATA_ID_BYTES = 4 + 4 + 8  # sensor type, sensor id, data id u64
+_U8, _U32, _I32, _U64 = (struct.Struct(f) for f in ("<B", "<I", "<i", "<Q"))
+
+
+@functools.cache
+def camera_model_num_params() -> dict[int, int]:
+    """COLMAP camera model id -> number of parameters, as the installed pycolmap defines them."""
+    table = {}
+    for model in pycolmap.CameraModelId.__members__.values():
+        if int(model) >= 0:
+            table[int(model)] = len(pycolmap.Camera.create_from_model_id(1, model, 1.0, 1, 1).params)
+    return table
+
+
+class _Corrupt(Exception):
+    """A structural problem found by :class:`_RecordReader`; turned into a NimbusError naming the file."""
+
+
+class _RecordReader:
+    """A bounds-checked cursor over a COLMAP binary file that reads only headers and counts.
+
+    Every count is checked against the bytes left before anything is skipped, so a corrupt
+    file costs neither memory nor time (the file is memory-mapped, never read whole).
+    """
+
+    def __init__(self, buf) -> None:
+        self.buf, self.pos, self.size = buf, 0, len(buf)
+
+    def left(self) -> int:
+        return self.size - self.pos
+
+    def skip(self, n: int, what: str) -> None:
+        if n > self.left():
+            raise _Corrupt(f"{what} needs {n} bytes but only {self.left()} are left (the file is truncated)")
+        self.pos += n
+
+    def read(self, fmt: struct.Struct, what: str) -> int:
+        start = self.pos
+        self.skip(fmt.size, what)
+        return fmt.unpack_from(self.buf, start)[0]
+
+    def count(self, fmt: struct.Struct, min_bytes: int, what: str) -> int:
+        """A declared number of records of at least ``min_bytes`` each, refused when they cannot fit."""
+        n = self.read(fmt, f"the number of {what}")
+        if n * min_bytes > self.left():
+            raise _Corrupt(f"declares {n} {what} (at least {n * min_bytes} bytes) but only {self.left()} bytes "
+                           "follow (a corrupt count or a truncated file)")
+        return n
+
+    def name(self, what: str) -> None:
+        end = self.buf.find(b"\0", self.pos)
+        if end < 0:
+            raise _Corrupt(f"{what} has no terminating NUL byte (the file is truncated)")
+        self.pos = end + 1
+
+
+def _walk_cameras(r: _RecordReader) -> None:
+    num_params = camera_model_num_params()
+    for i in range(r.count(_U64, _CAMERA_BYTES, "cameras")):
+        r.skip(4, f"camera {i + 1}")
+        model = r.read(_I32, f"camera {i + 1}")
+        if model not in num_params:
+            raise _Corrupt(f"camera {i + 1} has an unknown camera model id {model}")
+        r.skip(16 + 8 * num_params[model], f"camera {i + 1}")
+
+
+def _walk_images(r: _RecordReader) -> None:
+    for i in range(r.count(_U64, _IMAGE_BYTES + 1 + 8, "images")):
+        r.skip(_IMAGE_BYTES, f"image {i + 1}")
+        r.name(f"the name of image {i + 1}")
+        n = r.count(_U64, _POINT2D_BYTES, f"2D points of image {i + 1}")
+        r.pos += n * _POINT2D_BYTES
+
+
+def _walk_points3d(r: _RecordReader) -> None:
+    # Hot loop (a model can hold millions of points): inlined rather than through the helpers.
+    n = r.count(_U64, _POINT3D_BYTES + 8, "3D points")
+    buf, pos, size, unpack = r.buf, r.pos, r.size, _U64.unpack_from
+    for i in range(n):
+        if pos + _POINT3D_BYTES + 8 > size:
+            r.pos = pos
+            raise _Corrupt(f"3D point {i + 1} of {n} is cut off (the file is truncated)")
+        track = unpack(buf, pos + _POINT3D_BYTES)[0]
+        pos += _POINT3D_BYTES + 8
+        if track * _TRACK_ELEMENT_BYTES > size - pos:
+            raise _Corrupt(f"3D point {i + 1} declares a track of {track} observations "
+                           f"({track * _TRACK_ELEMENT_BYTES} bytes) but only {size - pos} bytes follow")
+        pos += track * _TRACK_ELEMENT_BYTES
+    r.pos = pos
+
+
+def _walk_rigs(r: _RecordReader) -> None:
+    for i in range(r.count(_U64, _RIG_BYTES, "rigs")):
+        r.skip(4, f"rig {i + 1}")
+        sensors = r.read(_U32, f"the number of sensors of rig {i + 1}")
+        if sensors == 0:
+            continue
+        r.skip(_SENSOR_BYTES, f"the reference sensor of rig {i + 1}")
+        # The other sensors: type, id and a has-pose byte each (+ a pose when that byte is set).
+        if (sensors - 1) * (_SENSOR_BYTES + 1) > r.left():
+            raise _Corrupt(f"rig {i + 1} declares {sensors} sensors (at least {(sensors - 1) * (_SENSOR_BYTES + 1)} "
+                           f"bytes) but only {r.left()} bytes follow (a corrupt count or a truncated file)")
+        for _ in range(sensors - 1):
+            r.skip(_SENSOR_BYTES, f"a sensor of rig {i + 1}")
+            if r.read(_U8, f"a sensor of rig {i + 1}"):
+                r.skip(_POSE_BYTES, f"a sensor pose of rig {i + 1}")
+
+
+def _walk_frames(r: _RecordReader) -> None:
+    for i in range(r.count(_U64, _FRAME_BYTES, "frames")):
+        r.skip(_FRAME_BYTES - 4, f"frame {i + 1}")
+        n = r.count(_U32, _DATA_ID_BYTES, f"data ids of frame {i + 1}")
+        r.pos += n * _DATA_ID_BYTES
+
+
+_BINARY_WALKERS = {"rigs.bin": _walk_rigs, "cameras.bin": _walk_cameras, "frames.bin": _walk_frames,
+                   "images.bin": _walk_images, "points3D.bin": _walk_points3d}
+
+
+def check_binary_model(sparse_dir: str | os.PathLike) -> None:
+    """Walk every binary file of a COLMAP model and check its structure against its size.
+
+    Reads only the record headers and the variable-length counts (a camera model's number of
+    parameters, an image's NUL-terminated name and ``num_points2D * 24`` bytes, a point's
+    ``track_length * 8`` bytes, a rig's sensors, a frame's data ids).  A declared count that
+    cannot fit in the bytes left, a record cut off by the end of the file or an unknown camera
+    model raises NimbusError naming the file, in well under a second and without allocating
+    more than the walk itself needs, before pycolmap would try to allocate what the file declares.
+    Bytes after the last record are ignored, as COLMAP does.
+    """
+    sparse_dir = Path(sparse_dir)
+    for name, walk in _BINARY_WALKERS.items():
+        path = sparse_dir / name
+        if not path.is_file():
+            continue
+        try:
+            with open(path, "rb") as f:
+                size = os.fstat(f.fileno()).st_size
+                if size == 0:
+                    raise _Corrupt("is empty")
+                with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as buf:
+                    walk(_RecordReader(buf))
+        except _Corrupt as e:
+            raise NimbusError(f"COLMAP model file {path} is corrupt and unreadable: {e}; re-export the model "
+                              "from COLMAP (or restore the file from a backup)") from None
+        except OSError as e:
+            raise NimbusError(f"COLMAP model file {path} cannot be read ({e.strerror}); check the file") from None
+
+
+# --- text model errors -----------------------------------------------------------------
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
+def _text_line_problem(kind: str, tokens: list[str]) -> str | None:
+    """What is wrong with one data line of a text model file, or None (a light check for messages)."""
+    if kind == "cameras":
+        if len(tokens) < 4 or not all(t.isdigit() for t in (tokens[0], tokens[2], tokens[3])):
+            return "expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS..."
+        if not all(_is_number(t) for t in tokens[4:]):
+            return "camera parameters must be numbers"
+        model = getattr(pycolmap.CameraModelId, tokens[1], None)
+        if model is None:
+            return f"unknown camera model {tokens[1]!r}"
+        expected = camera_model_num_params()[int(model)]
+        if len(tokens) - 4 != expected:
+            return f"the {tokens[1]} model takes {expected} parameters, the line has {len(tokens) - 4}"
+    elif kind == "images":
+        if len(tokens) < 10 or not all(_is_number(t) for t in tokens[:9]):
+            return "expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME"
+    elif kind == "points2D":
+        if len(tokens) % 3 or not all(_is_number(t) for t in tokens):
+            return "expected the image's 2D points as X Y POINT3D_ID triples"
+    elif kind == "points3D":
+        if len(tokens) < 8 or (len(tokens) - 8) % 2 or not all(_is_number(t) for t in tokens):
+            return "expected POINT3D_ID X Y Z R G B ERROR TRACK[] as (IMAGE_ID, POINT2D_IDX) pairs"
+    return None
+
+
+def locate_text_model_error(sparse_dir: str | os.PathLike) -> str | None:
+    """``"FILE line N: problem ('line')"`` for the first malformed line of a text model, or None.
+
+    Used only to explain a model pycolmap refused, so the message names the file and line.
+    """
+    sparse_dir = Path(sparse_dir)
+    for kind in ("cameras", "images", "points3D"):
+        path = sparse_dir / f"{kind}.txt"
+        try:
+            lines = path.read_text(encoding="utf-8").splitlines()
+        except UnicodeDecodeError:
+            return f"{path} (not a UTF-8 text file)"
+        except OSError:
+            continue
+        expect_points = False
+        for number, line in enumerate(lines, start=1):
+            stripped = line.strip()
+            if kind == "images" and expect_points:  # the line after a pose line, empty or not
+                problem, expect_points = _text_line_problem("points2D", stripped.split()), False
+            elif not stripped or stripped.startswith("#"):
+                continue
+            else:
+                problem = _text_line_problem(kind, stripped.split())
+                expect_points = kind == "images"
+            if problem:
+                return f"{path} line {number}: {problem} (got {stripped[:80]!r})"
+    return None
+
+
+def camera_from_colmap(cam: pycolmap.Camera, cam_from_world: np.ndarray, sparse_dir: Path | str = "",
+                       image_name: str | None = None) -> Camera:
     """A Nimbus camera from a pycolmap camera and a 3x4 world-to-camera matrix.
 
-    Raises NimbusError for a distorted or non-perspective model, saying how to undistort.
+    Raises NimbusError for a distorted or non-perspective model, saying how to undistort, and
+    for an invalid camera (non-finite or non-positive intrinsics, a size of 0, a pose that is
+    not finite or not a rotation), naming the model folder, the camera and ``image_name``.
     """
     model = cam.model_name
     params = np.asarray(cam.params, dtype=np.float64)
@@ -90,8 +344,13 @@ def camera_from_colmap(cam: pycolmap.Camera, cam_from_world: np.ndarray, sparse_
                 f"'{root}_undistorted', '{sparse_dir}', '{root}/images')), then load {root}_undistorted"
             )
     m = np.asarray(cam_from_world, dtype=np.float64)
-    return Camera(cam.width, cam.height, cam.focal_length_x, cam.focal_length_y,
-                  cam.principal_point_x, cam.principal_point_y, m[:3, :3], m[:3, 3])
+    try:
+        return Camera(cam.width, cam.height, cam.focal_length_x, cam.focal_length_y,
+                      cam.principal_point_x, cam.principal_point_y, m[:3, :3], m[:3, 3])
+    except NimbusError as e:
+        image = f" (image {image_name!r})" if image_name is not None else ""
+        raise NimbusError(f"camera {cam.camera_id} in {sparse_dir}{image}: {e}; fix the model (or re-export it "
+                          "from COLMAP)") from None
 
 
 def _cam_from_world(image: pycolmap.Image) -> np.ndarray:
@@ -142,8 +401,13 @@ def read_colmap(root: str | os.PathLike, downscale: int = 1) -> Scene:
                 f"-resize {100 / downscale:g}% {root}/images/*`) or load with downscale=1")
         raise NimbusError(f"image folder {image_dir} does not exist{hint}")
 
-    views = [View(im.name, camera_from_colmap(rec.cameras[im.camera_id], _cam_from_world(im), sparse),
-                  image_path=image_dir / im.name) for im in images]
+    images_file = sparse / f"images{model_suffix(sparse)}"
+    views = []
+    for im in images:
+        # The name decides what is read now and, as the view name, what writers create later.
+        path = scene_file(root, im.name, f"image name in {images_file}", folder=image_dir.name)
+        cam = camera_from_colmap(rec.cameras[im.camera_id], _cam_from_world(im), sparse, image_name=im.name)
+        views.append(View(im.name, cam, image_path=path))
     missing = [v.name for v in views if not v.image_path.is_file()]
     if missing:
         raise NimbusError(f"{len(missing)} image(s) of the COLMAP model are missing from {image_dir}: "
@@ -162,6 +426,7 @@ def read_colmap(root: str | os.PathLike, downscale: int = 1) -> Scene:
     point_ids = sorted(rec.points3D)
     points = np.array([rec.points3D[i].xyz for i in point_ids], dtype=np.float64).reshape(-1, 3)
     colors = np.array([rec.points3D[i].color for i in point_ids], dtype=np.uint8).reshape(-1, 3)
+    check_points_finite(points, sparse / f"points3D{model_suffix(sparse)}")
     names = [v.name for v in views]
     test = read_split_lists(root, names)
     if test is None:

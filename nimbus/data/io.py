@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 
 from nimbus.data.images import IMAGE_EXTENSIONS, write_depth, write_image, write_mask
-from nimbus.data.scene import Scene, View, write_split_lists
+from nimbus.data.scene import Scene, View, scene_file, write_split_lists
 from nimbus.errors import NimbusError
 from nimbus.utils.fs import atomic_dir
 
@@ -265,7 +265,9 @@ def aux_name(name: str, suffix: str) -> str:
 def attach_aux_files(root: Path, views: list[View], downscale: int) -> list[View]:
     """Attach ``depths/<stem>.npy`` and ``masks/<stem>.png`` to the views that have them.
 
-    A folder that exists but lacks some views' files gets a warning naming them.
+    A folder that exists but lacks some views' files gets a warning naming them.  A file
+    that leads outside the scene (a link, or a folder linked elsewhere) is refused
+    (:func:`nimbus.data.scene.scene_file`).
     """
     from dataclasses import replace
 
@@ -279,7 +281,8 @@ def attach_aux_files(root: Path, views: list[View], downscale: int) -> list[View
                 continue
             f = folder / aux_name(v.name, suffix)
             if f.is_file():
-                changes[field] = f
+                changes[field] = scene_file(root, aux_name(v.name, suffix), f"{field[:-5]} file of view {v.name}",
+                                            folder=folder.name)
             else:
                 missing[folder.name].append(v.name)
         out.append(replace(v, **changes) if changes else v)
@@ -287,6 +290,14 @@ def attach_aux_files(root: Path, views: list[View], downscale: int) -> list[View
         if names:
             log.warning("%s/%s has no file for %d view(s): %s", root, folder, len(names), format_names(names))
     return out
+
+
+def check_points_finite(points: np.ndarray, source: str | os.PathLike) -> None:
+    """Refuse sparse points with NaN or inf coordinates (they would seed NaN Gaussians), naming the file."""
+    bad = ~np.isfinite(np.asarray(points, dtype=np.float64)).all(axis=-1)
+    if bad.any():
+        raise NimbusError(f"{source}: {int(bad.sum())} of {len(bad)} sparse points have NaN or infinite "
+                          "coordinates; remove them or re-export the points")
 
 
 def check_image_sizes(views: list[View], hint: str) -> None:

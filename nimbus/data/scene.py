@@ -11,8 +11,9 @@ views costs nothing until a view is used) unless the view carries them in memory
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field, replace
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Iterable, Sequence
 
 import numpy as np
@@ -20,6 +21,7 @@ import numpy as np
 from nimbus.data.camera import Camera
 from nimbus.data.images import read_depth, read_image, read_mask
 from nimbus.errors import NimbusError
+from nimbus.utils.fs import confined_path
 
 
 @dataclass(frozen=True, eq=False)
@@ -201,10 +203,55 @@ def llff_test_names(names: Sequence[str], every: int = 8) -> list[str]:
     return [n for i, n in enumerate(sorted(names)) if i % every == 0]
 
 
+def scene_file(root: str | os.PathLike, name: object, what: str, folder: str | os.PathLike = "") -> Path:
+    """``root / folder / name`` for a file name read from a scene file, refused unless it stays in the scene.
+
+    This is the one rule every reader applies to a name it did not make up itself: COLMAP image
+    names, ``transforms.json`` ``file_path`` / ``mask_path`` / ``depth_file_path`` /
+    ``test_filenames`` / ``ply_file_path``, the split lists, and the depth and mask files found
+    for a view.  The name must be a non-empty relative path (``/`` separators) without a ``..``
+    component, and the file it names, with every symlink resolved, must lie inside the scene
+    folder ``root`` (:func:`nimbus.utils.fs.confined_path`).  So a hostile ``/etc/passwd``,
+    ``../../x/t.png`` or a link in ``images/`` that leads out can make Nimbus neither read outside
+    the scene nor, through a view name, write outside an output folder.  (An image folder that is
+    itself a link to elsewhere is refused too: copy the files into the scene.)
+
+    Parameters
+    ----------
+    root : path
+        The scene folder.
+    name : object
+        The name as read (anything but a ``str`` is refused).
+    what : str
+        What the name is and where it came from, for the message (``"image name in sparse/0/images.bin"``).
+    folder : path
+        Folder inside ``root`` the name is relative to (``"images"``); ``""`` for ``root`` itself.
+
+    Returns
+    -------
+    Path
+        ``root / folder / name`` as given (not resolved), so paths read back look as the user wrote them.
+    """
+    if not isinstance(name, str) or not name.strip() or "\x00" in name:
+        raise NimbusError(f"{what}: {name!r} is not a file name; expected a relative path such as \"images/0001.png\"")
+    pure = PurePosixPath(name)
+    if pure.is_absolute() or ".." in pure.parts or Path(name).is_absolute():
+        raise NimbusError(f"{what}: {name!r} points outside the scene folder {root}; names must be relative paths "
+                          "inside the scene (no absolute paths, no '..'); fix the name or move the file into the scene")
+    path = Path(root) / folder / name
+    try:
+        confined_path(root, path.relative_to(root), what)
+    except NimbusError:
+        raise NimbusError(f"{what}: {name!r} leads outside the scene folder {root} (through a link, to "
+                          f"{path.resolve()}); copy the file into the scene instead of linking to it") from None
+    return path
+
+
 def read_split_lists(root: Path, names: Sequence[str]) -> frozenset[str] | None:
     """Test names from ``train_list.txt`` / ``test_list.txt`` in ``root``, or None if neither exists.
 
-    Lists hold one image name per line (blank lines and ``#`` comments ignored).
+    Lists hold one image name per line (blank lines and ``#`` comments ignored); every name must
+    be a view of the scene (and so a relative name inside it, see :func:`scene_file`).
     With only ``train_list.txt``, every other view is a test view.
     """
     root = Path(root)
@@ -214,8 +261,14 @@ def read_split_lists(root: Path, names: Sequence[str]) -> frozenset[str] | None:
     known = set(names)
 
     def read(f: Path) -> list[str]:
-        items = [ln.strip() for ln in f.read_text().splitlines()]
+        try:
+            lines = f.read_text(encoding="utf-8").splitlines()
+        except UnicodeDecodeError:
+            raise NimbusError(f"{f} is not a UTF-8 text file; it should list one image name per line") from None
+        items = [ln.strip() for ln in lines]
         items = [s for s in items if s and not s.startswith("#")]
+        for s in items:
+            scene_file(root, s, f"{f.name} entry")
         missing = [s for s in items if s not in known]
         if missing:
             raise NimbusError(f"{f} names images that are not in the scene: {missing[:5]}; fix the list")

@@ -12,7 +12,9 @@ Reading
   values win); or Blender's ``camera_angle_x`` (``fl = w / 2 / tan(angle / 2)``,
   square pixels, centred principal point) with the size read from the image.
 * ``file_path`` relative to ROOT, with or without an extension (Blender
-  omits ``.png``).  View names are these paths with a folder shared by all of
+  omits ``.png``); like every name read from the file it must stay inside
+  ROOT (:func:`nimbus.data.scene.scene_file`: no absolute path, no ``..``, no
+  link leading out).  View names are these paths with a folder shared by all of
   them removed (``images/frame_00001.png`` -> ``frame_00001.png``).  With
   ``downscale=d`` that shared folder ``X`` is replaced by ``X_d`` (nerfstudio's
   ``images_2/4/8``) and the cameras are scaled to the files' true sizes.
@@ -23,8 +25,12 @@ Reading
 * Split: ``train_list.txt`` / ``test_list.txt`` if present; else Blender's
   test file; else nerfstudio's ``test_filenames``; else the LLFF rule.
 * nerfstudio's per-frame ``mask_path`` / ``depth_file_path`` are ignored
-  (their conventions differ from Nimbus's); ``depths/`` and ``masks/`` folders
-  are attached as for every layout (:mod:`nimbus.data.io`).
+  (their conventions differ from Nimbus's), but a name that leads outside ROOT
+  is still refused; ``depths/`` and ``masks/`` folders are attached as for every
+  layout (:mod:`nimbus.data.io`).
+* Every camera value is checked (:class:`nimbus.data.camera.Camera`): finite
+  numbers, positive focal lengths, whole positive sizes, a finite rotation; a
+  bad one raises NimbusError naming the file and the frame.
 
 Writing
 -------
@@ -42,17 +48,18 @@ from pathlib import Path
 
 import numpy as np
 
-from nimbus.data.camera import Camera
+from nimbus.data.camera import Camera, finite_value, image_size_value
 from nimbus.data.images import IMAGE_EXTENSIONS
 from nimbus.data.io import (
     attach_aux_files,
     check_image_sizes,
+    check_points_finite,
     format_names,
     image_size,
     scaled_to_image,
     write_view_files,
 )
-from nimbus.data.scene import Scene, View, llff_test_names, read_split_lists
+from nimbus.data.scene import Scene, View, llff_test_names, read_split_lists, scene_file
 from nimbus.errors import NimbusError
 from nimbus.utils.fs import atomic_write_bytes, atomic_write_json
 
@@ -63,6 +70,10 @@ PINHOLE_CAMERA_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "PERSPECTIVE")
 # Colour given to PLY points that carry none (mid-grey).
 DEFAULT_POINT_COLOR = 128
 WRITTEN_PLY = "sparse_pc.ply"
+# nerfstudio's split keys: lists of file paths (only test_filenames is used; all are type-checked).
+SPLIT_KEYS = ("train_filenames", "val_filenames", "test_filenames")
+# Per-frame file names Nimbus does not read but still keeps inside the scene.
+IGNORED_FRAME_FILES = ("mask_path", "depth_file_path")
 
 
 def read_json(path: Path) -> dict:
@@ -76,6 +87,12 @@ def read_json(path: Path) -> dict:
     except json.JSONDecodeError as e:
         raise NimbusError(f"{path} is not valid JSON ({e.msg} at line {e.lineno}, column {e.colno}); "
                           "fix or re-export it") from None
+    except RecursionError:
+        raise NimbusError(f"{path} is nested too deeply to be a transforms.json; fix or re-export it") from None
+    except ValueError as e:  # e.g. an integer literal longer than Python's digit limit
+        raise NimbusError(f"{path} is not valid JSON ({e}); fix or re-export it") from None
+    except OSError as e:
+        raise NimbusError(f"{path} cannot be read ({e.strerror}); check the file") from None
     if not isinstance(meta, dict):
         raise NimbusError(f"{path} must hold a JSON object with a \"frames\" list")
     return meta
@@ -95,23 +112,28 @@ def _transforms_files(path: Path) -> tuple[Path, list[tuple[Path, bool]]]:
     raise NimbusError(f"{path} has no transforms.json (or Blender transforms_train.json)")
 
 
-def _resolve_image(root: Path, file_path: str) -> Path | None:
-    """The image file a ``file_path`` names: as given, or with an image extension added."""
-    p = root / file_path
+def _resolve_image(root: Path, file_path: object, what: str) -> Path | None:
+    """The image file a ``file_path`` names: as given, or with an image extension added.
+
+    The name and the file found are both confined to ``root`` (:func:`scene_file`).
+    """
+    p = scene_file(root, file_path, what)
     if p.is_file():
         return p
     for ext in dict.fromkeys(e.lower() for e in IMAGE_EXTENSIONS):
         for candidate in (p.with_name(p.name + ext), p.with_name(p.name + ext.upper())):
             if candidate.is_file():
-                return candidate
+                return scene_file(root, f"{file_path}{candidate.suffix}", what)
     return None
 
 
-def _relpath(root: Path, path: Path, where: str) -> str:
-    rel = Path(os.path.relpath(path, root))
-    if rel.is_absolute() or ".." in rel.parts:
-        raise NimbusError(f"{where}: image {path} is outside the scene folder {root}; move it inside")
-    return rel.as_posix()
+def _string_list(meta: dict, key: str, file: Path) -> list[str]:
+    """``meta[key]`` as a list of strings ([] when absent); NimbusError for any other type."""
+    value = meta.get(key, [])
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise NimbusError(f"{file}: \"{key}\" must be a list of file paths, got {json.dumps(value)[:80]}; "
+                          "fix the transforms file")
+    return value
 
 
 def _intrinsics(meta: dict, frame: dict, full_image: Path, where: str) -> tuple[int, int, float, float, float, float]:
@@ -123,7 +145,7 @@ def _intrinsics(meta: dict, frame: dict, full_image: Path, where: str) -> tuple[
     if model is not None and str(model).upper() not in PINHOLE_CAMERA_MODELS:
         raise NimbusError(f"{where}: camera_model {model} is not supported; Nimbus needs pinhole (perspective) "
                           "images without distortion (OPENCV with zero coefficients)")
-    dist = {k: float(get(k)) for k in DISTORTION_KEYS if get(k) is not None and float(get(k)) != 0.0}
+    dist = {k: v for k in DISTORTION_KEYS if get(k) is not None and (v := finite_value(get(k), k)) != 0.0}
     if dist:
         raise NimbusError(
             f"{where}: lens distortion {dist} is not supported; Nimbus needs undistorted images. "
@@ -134,17 +156,20 @@ def _intrinsics(meta: dict, frame: dict, full_image: Path, where: str) -> tuple[
         if full_image is None or not full_image.is_file():
             raise NimbusError(f"{where}: no image size (w, h) and no image file to read it from")
         w, h = image_size(full_image)
-    w, h = int(w), int(h)
+    w, h = image_size_value(w, "w"), image_size_value(h, "h")
     fx, fy = get("fl_x"), get("fl_y")
-    if fx is None:
-        if get("camera_angle_x") is None:
-            raise NimbusError(f"{where}: no focal length (fl_x or camera_angle_x); add it to the file")
-        fx = 0.5 * w / np.tan(0.5 * float(get("camera_angle_x")))
-    if fy is None:
-        fy = 0.5 * h / np.tan(0.5 * float(get("camera_angle_y"))) if get("camera_angle_y") is not None else fx
+    with np.errstate(divide="ignore", invalid="ignore"):  # a zero or NaN angle is refused as a focal length
+        if fx is None:
+            if get("camera_angle_x") is None:
+                raise NimbusError(f"{where}: no focal length (fl_x or camera_angle_x); add it to the file")
+            fx = 0.5 * w / np.tan(0.5 * finite_value(get("camera_angle_x"), "camera_angle_x"))
+        if fy is None:
+            fy = (0.5 * h / np.tan(0.5 * finite_value(get("camera_angle_y"), "camera_angle_y"))
+                  if get("camera_angle_y") is not None else fx)
     cx = get("cx") if get("cx") is not None else w / 2
     cy = get("cy") if get("cy") is not None else h / 2
-    return w, h, float(fx), float(fy), float(cx), float(cy)
+    return (w, h, finite_value(fx, "fl_x"), finite_value(fy, "fl_y"), finite_value(cx, "cx"),
+            finite_value(cy, "cy"))
 
 
 def opengl_c2w_to_w2c(c2w: np.ndarray) -> np.ndarray:
@@ -193,12 +218,18 @@ def read_transforms(path: str | os.PathLike, downscale: int = 1) -> Scene:
         frames = meta.get("frames")
         if not isinstance(frames, list) or not frames:
             raise NimbusError(f"{file} has no \"frames\" list; it is not a transforms.json scene")
-        test_filenames += list(meta.get("test_filenames", []))
+        for key in SPLIT_KEYS:
+            names = _string_list(meta, key, file)
+            if key == "test_filenames":
+                test_filenames += names
         for i, frame in enumerate(frames):
             if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
                 raise NimbusError(f"{file}: frame {i} needs \"file_path\" and \"transform_matrix\"")
             where = f"{file}: frame {i} ({frame['file_path']})"
-            image = _resolve_image(root, frame["file_path"])
+            for key in IGNORED_FRAME_FILES:
+                if frame.get(key) is not None:
+                    scene_file(root, frame[key], f"{where}: {key}")
+            image = _resolve_image(root, frame["file_path"], f"{where}: file_path")
             if image is None:
                 missing.append(str(frame["file_path"]))
                 continue
@@ -212,7 +243,7 @@ def read_transforms(path: str | os.PathLike, downscale: int = 1) -> Scene:
                 raise NimbusError(e.args[0] if str(e).startswith(where) else f"{where}: {e}") from None
             except (TypeError, ValueError) as e:
                 raise NimbusError(f"{where}: malformed value ({e}); fix the transforms file") from None
-            records.append((_relpath(root, image, where), image, cam, is_test))
+            records.append((Path(os.path.relpath(image, root)).as_posix(), image, cam, is_test))
     if missing:
         raise NimbusError(f"{len(missing)} image(s) listed in the transforms file(s) are missing under {root}: "
                           f"{format_names(missing)}; restore them or remove their frames")
@@ -227,7 +258,7 @@ def read_transforms(path: str | os.PathLike, downscale: int = 1) -> Scene:
     views = []
     for name, (_, image, cam, _) in zip(names, records):
         if downscale > 1:
-            image = root / f"{prefix}_{downscale}" / name
+            image = scene_file(root, name, f"downscaled image of {name}", folder=f"{prefix}_{downscale}")
             if not image.is_file():
                 raise NimbusError(f"downscaled image {image} does not exist; make {prefix}_{downscale}/ by "
                                   f"resizing {prefix}/ by 1/{downscale}, or use downscale=1")
@@ -248,7 +279,7 @@ def read_transforms(path: str | os.PathLike, downscale: int = 1) -> Scene:
         by_path = {r[1].resolve(): n for n, r in zip(names, records)}
         test = set()
         for f in test_filenames:
-            image = _resolve_image(root, f)
+            image = _resolve_image(root, f, "test_filenames entry")
             if image is None or image.resolve() not in by_path:
                 raise NimbusError(f"test_filenames entry {f!r} is not a frame of the scene; fix the transforms file")
             test.add(by_path[image.resolve()])
@@ -257,8 +288,8 @@ def read_transforms(path: str | os.PathLike, downscale: int = 1) -> Scene:
 
     points, colors = np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
     ply_file = metas[0].get("ply_file_path")
-    if ply_file:
-        ply = root / ply_file
+    if ply_file not in (None, ""):
+        ply = scene_file(root, ply_file, f"{files[0][0]}: ply_file_path")
         if not ply.is_file():
             raise NimbusError(f"ply_file_path {ply} does not exist; restore it or remove the key")
         points, colors = read_ply_points(ply)
@@ -304,36 +335,53 @@ def read_ply_points(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
 
     The vertex element must come first and have x, y, z; colours are
     ``red, green, blue`` (uchar, or float in [0, 1]); without them points are grey.
+    A malformed header, a vertex count that is missing, negative or larger than the
+    file holds, and non-finite coordinates raise NimbusError naming the file.
     """
     path = Path(path)
-    data = path.read_bytes()
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise NimbusError(f"PLY file {path} cannot be read ({e.strerror}); check ply_file_path") from None
     end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
-        raise NimbusError(f"{path} is not a PLY file")
+    newline = data.find(b"\n", end) if end >= 0 else -1
+    if not data.startswith(b"ply") or newline < 0:
+        raise NimbusError(f"{path} is not a PLY file (no 'ply' ... 'end_header' header); re-export the points")
     header = data[:end].decode("ascii", "replace").splitlines()
-    body_start = data.index(b"\n", end) + 1
-    fmt, count, props, in_vertex, seen_element = None, 0, [], False, False
+    body_start = newline + 1
+    fmt, count, props, in_vertex, seen_element = None, None, [], False, False
     for line in header:
         tok = line.split()
         if not tok:
             continue
-        if tok[0] == "format":
+        if tok[0] == "format" and len(tok) >= 2:
             fmt = tok[1]
         elif tok[0] == "element":
+            if len(tok) != 3:
+                raise NimbusError(f"{path}: malformed PLY header line {line.strip()!r} "
+                                  "(expected 'element NAME COUNT'); re-export the points")
             if not seen_element and tok[1] != "vertex":
                 raise NimbusError(f"{path}: the first PLY element must be 'vertex'")
             in_vertex, seen_element = tok[1] == "vertex", True
             if in_vertex:
+                if not tok[2].isdigit():  # also refuses a negative count
+                    raise NimbusError(f"{path}: the vertex count {tok[2]!r} is not a whole number >= 0; "
+                                      "re-export the points")
                 count = int(tok[2])
         elif tok[0] == "property" and in_vertex:
-            if tok[1] == "list" or tok[1] not in _PLY_TYPES:
-                raise NimbusError(f"{path}: unsupported vertex property {' '.join(tok[1:])}")
+            if len(tok) != 3 or tok[1] not in _PLY_TYPES:
+                raise NimbusError(f"{path}: unsupported vertex property {' '.join(tok[1:])!r}")
             props.append((tok[2], _PLY_TYPES[tok[1]]))
+    if count is None:
+        raise NimbusError(f"{path}: the PLY header declares no vertices ('element vertex COUNT'); re-export the points")
     names = [p[0] for p in props]
     if not {"x", "y", "z"} <= set(names):
         raise NimbusError(f"{path}: vertices have no x, y, z")
     if fmt == "ascii":
-        rows = data[body_start:].decode("ascii", "replace").split("\n")[:count]
+        if count > len(data) - body_start:  # every vertex takes more than one byte
+            raise NimbusError(f"{path} is truncated or its vertex count is wrong ({count} vertices declared, "
+                              f"{len(data) - body_start} bytes of vertex data)")
+        rows = data[body_start:].decode("ascii", "replace").split("\n", count)[:count]
         try:
             table = np.array([r.split()[: len(props)] for r in rows], dtype=np.float64).reshape(count, len(props))
         except ValueError:
@@ -343,17 +391,19 @@ def read_ply_points(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         order = "<" if fmt == "binary_little_endian" else ">"
         dtype = np.dtype([(n, order + t) for n, t in props])
         if len(data) - body_start < dtype.itemsize * count:
-            raise NimbusError(f"{path} is truncated ({count} vertices declared)")
+            raise NimbusError(f"{path} is truncated or its vertex count is wrong ({count} vertices of "
+                              f"{dtype.itemsize} bytes declared, {len(data) - body_start} bytes present)")
         arr = np.frombuffer(data, dtype=dtype, count=count, offset=body_start)
         col = {n: arr[n] for n in names}
     else:
         raise NimbusError(f"{path}: unknown PLY format {fmt!r}")
-    xyz = np.stack([col["x"], col["y"], col["z"]], axis=1).astype(np.float64)
+    xyz = np.stack([col["x"], col["y"], col["z"]], axis=1).astype(np.float64).reshape(count, 3)
+    check_points_finite(xyz, path)
     if {"red", "green", "blue"} <= set(names):
         rgb = np.stack([col["red"], col["green"], col["blue"]], axis=1)
         if np.issubdtype(np.asarray(rgb).dtype, np.floating) and rgb.size and rgb.max() <= 1.0:
             rgb = rgb * 255.0
-        rgb = np.clip(np.round(rgb), 0, 255).astype(np.uint8)
+        rgb = np.clip(np.nan_to_num(np.round(rgb)), 0, 255).astype(np.uint8)
     else:
         rgb = np.full((count, 3), DEFAULT_POINT_COLOR, np.uint8)
     return xyz, rgb

@@ -1,0 +1,450 @@
+"""Hostile or corrupt scene files (issue 14): every one ends in a NimbusError that names the file.
+
+Each test builds its hostile input in tmp_path: names that escape the scene (COLMAP txt / bin,
+transforms.json, split lists, links), corrupt COLMAP binary and text models, invalid camera
+values, malformed JSON and PLY, and depth maps that are negative, mostly missing or pickled.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import struct
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+
+from nimbus.data.colmap import check_binary_model
+from nimbus.data.images import read_depth, write_image
+from nimbus.data.io import load_scene, write_scene
+from nimbus.data.transforms import read_ply_points
+from nimbus.errors import NimbusError
+
+from conftest import make_tiny_scene
+
+ESCAPES = "outside the scene"
+
+
+def _colmap_scene(tmp_path, text=False, name="scene", **kw) -> Path:
+    return write_scene(make_tiny_scene(n_views=3, **kw), tmp_path / name, text=text)
+
+
+def _outside_image(tmp_path) -> Path:
+    """A valid image of the scene's size outside it: what a hostile name would make Nimbus read."""
+    f = tmp_path / "outside" / "secret.png"
+    write_image(f, np.zeros((24, 32, 3), np.float32))
+    return f
+
+
+# --- 1. names that escape the scene ------------------------------------------------------
+@pytest.mark.parametrize("hostile", ["absolute", "../../x/t.png"])
+def test_colmap_txt_image_name_outside_the_scene_is_refused(tmp_path, hostile):
+    secret = _outside_image(tmp_path)
+    root = _colmap_scene(tmp_path, text=True)
+    name = str(secret) if hostile == "absolute" else hostile
+    images_txt = root / "sparse" / "0" / "images.txt"
+    images_txt.write_text(images_txt.read_text().replace(" 000.png", f" {name}"))
+    with pytest.raises(NimbusError, match=f"images.txt.*{ESCAPES}"):
+        load_scene(root)
+
+
+@pytest.mark.parametrize("hostile", ["absolute", "../../x/t.png", "sub/../../escape.png"])
+def test_colmap_bin_image_name_outside_the_scene_is_refused(tmp_path, hostile):
+    secret = _outside_image(tmp_path)
+    root = _colmap_scene(tmp_path)
+    sparse = root / "sparse" / "0"
+    rec = pycolmap.Reconstruction(sparse)
+    for im in rec.images.values():
+        if im.name == "000.png":
+            im.name = str(secret) if hostile == "absolute" else hostile
+    rec.write(sparse)
+    with pytest.raises(NimbusError, match=f"images.bin.*{ESCAPES}"):
+        load_scene(root)
+
+
+def _transforms_scene(root: Path, frame0=None, top=None) -> Path:
+    rng = np.random.default_rng(0)
+    frames = []
+    for i in range(3):
+        write_image(root / "images" / f"{i}.png", rng.random((12, 16, 3), dtype=np.float32))
+        c2w = np.eye(4)
+        c2w[:3, 3] = [0.2 * i, 0, 3]
+        frames.append({"file_path": f"images/{i}.png", "transform_matrix": c2w.tolist()})
+    frames[0].update(frame0 or {})
+    meta = {"fl_x": 20.0, "fl_y": 20.0, "cx": 8.0, "cy": 6.0, "w": 16, "h": 12, "frames": frames, **(top or {})}
+    (root / "transforms.json").write_text(json.dumps(meta))
+    return root
+
+
+@pytest.mark.parametrize("key", ["file_path", "mask_path", "depth_file_path"])
+def test_transforms_frame_names_outside_the_scene_are_refused(tmp_path, key):
+    secret = _outside_image(tmp_path)
+    for i, name in enumerate((str(secret), "../outside/secret.png")):
+        root = _transforms_scene(tmp_path / f"s{i}", frame0={key: name})
+        with pytest.raises(NimbusError, match=f"transforms.json: frame 0.*{key}.*{ESCAPES}"):
+            load_scene(root)
+
+
+def test_transforms_split_and_ply_names_outside_the_scene_are_refused(tmp_path):
+    secret = _outside_image(tmp_path)
+    root = _transforms_scene(tmp_path / "a", top={"test_filenames": [str(secret)]})
+    with pytest.raises(NimbusError, match=f"test_filenames.*{ESCAPES}"):
+        load_scene(root)
+    (tmp_path / "outside" / "p.ply").write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\n"
+                                                "property float y\nproperty float z\nend_header\n")
+    root = _transforms_scene(tmp_path / "b", top={"ply_file_path": "../outside/p.ply"})
+    with pytest.raises(NimbusError, match=f"ply_file_path.*{ESCAPES}"):
+        load_scene(root)
+
+
+@pytest.mark.parametrize("split", ["test_list.txt", "train_list.txt"])
+def test_split_list_name_outside_the_scene_is_refused(tmp_path, split):
+    root = _colmap_scene(tmp_path)
+    (root / "test_list.txt").unlink()
+    (root / split).write_text("001.png\n../../etc/passwd\n")
+    with pytest.raises(NimbusError, match=f"{split}.*{ESCAPES}"):
+        load_scene(root)
+
+
+def test_symlinks_that_lead_out_of_the_scene_are_refused(tmp_path):
+    secret = _outside_image(tmp_path)
+    root = _colmap_scene(tmp_path, depth=True)
+    link = root / "images" / "001.png"
+    link.unlink()
+    link.symlink_to(secret)
+    with pytest.raises(NimbusError, match="001.png.*leads outside the scene"):
+        load_scene(root)
+    # transforms.json reader: the same rule
+    troot = _transforms_scene(tmp_path / "t")
+    (troot / "images" / "2.png").unlink()
+    (troot / "images" / "2.png").symlink_to(secret)
+    with pytest.raises(NimbusError, match="file_path.*leads outside the scene"):
+        load_scene(troot)
+    # a depth map linked out of the scene
+    root = _colmap_scene(tmp_path, name="depth", depth=True)
+    np.save(tmp_path / "outside" / "d.npy", np.ones((24, 32), np.float32))
+    (root / "depths" / "002.npy").unlink()
+    (root / "depths" / "002.npy").symlink_to(tmp_path / "outside" / "d.npy")
+    with pytest.raises(NimbusError, match="depth file of view 002.png.*leads outside the scene"):
+        load_scene(root)
+    # A link that stays inside the scene is fine.
+    inside = _colmap_scene(tmp_path, name="inside")
+    (inside / "images" / "000.png").rename(inside / "real.png")
+    (inside / "images" / "000.png").symlink_to(inside / "real.png")
+    assert load_scene(inside).view("000.png").load_image().shape == (24, 32, 3)
+
+
+# --- 2. corrupt COLMAP models --------------------------------------------------------------
+def _image_count_offset(images_bin: bytes) -> int:
+    """Offset of the first image's num_points2D (after id, pose, camera id and the NUL-terminated name)."""
+    name_end = images_bin.index(b"\0", 8 + 4 + 56 + 4)
+    return name_end + 1
+
+
+# file -> offset of a variable-length count inside the first record, its format, and the value to plant
+VARIABLE_COUNTS = {
+    "cameras.bin": (8 + 4, "<i", 999),  # the camera model id decides the number of params
+    "images.bin": (None, "<Q", 2**40),  # num_points2D of the first image
+    "points3D.bin": (8 + 8 + 24 + 3 + 8, "<Q", 2**40),  # track length of the first point
+    "rigs.bin": (8 + 4, "<I", 2**31),  # num_sensors of the first rig
+    "frames.bin": (8 + 4 + 4 + 56, "<I", 2**31),  # num_data_ids of the first frame
+}
+
+
+def _corrupt(path: Path, how: str) -> None:
+    data = bytearray(path.read_bytes())
+    if how == "count":
+        data[:8] = struct.pack("<Q", 2**60)
+    elif how == "half":
+        data = data[: len(data) // 2]
+    else:
+        offset, fmt, value = VARIABLE_COUNTS[path.name]
+        offset = _image_count_offset(bytes(data)) if offset is None else offset
+        data[offset:offset + struct.calcsize(fmt)] = struct.pack(fmt, value)
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("how", ["count", "half", "variable"])
+@pytest.mark.parametrize("name", list(VARIABLE_COUNTS))
+def test_corrupt_binary_model_is_refused_naming_the_file(tmp_path, name, how):
+    sparse = _colmap_scene(tmp_path) / "sparse" / "0"
+    check_binary_model(sparse)  # the intact model passes
+    _corrupt(sparse / name, how)
+    with pytest.raises(NimbusError, match=rf"{name} is corrupt and unreadable: .*(declares|truncated|unknown)"):
+        check_binary_model(sparse)
+
+
+def test_corrupt_binary_models_fail_through_load_scene_in_bounded_memory(tmp_path):
+    """End to end in a child process (memory capped, so a regression cannot take the machine down)."""
+    cases = {}
+    for name in VARIABLE_COUNTS:
+        for how in ("count", "half", "variable"):
+            root = _colmap_scene(tmp_path, name=f"{name}-{how}")
+            _corrupt(root / "sparse" / "0" / name, how)
+            cases[f"{name}-{how}"] = str(root)
+    script = textwrap.dedent("""
+        import json, resource, sys
+        resource.setrlimit(resource.RLIMIT_AS, (2 << 30, 2 << 30))
+        from nimbus.data.io import load_scene
+        from nimbus.errors import NimbusError
+        import pycolmap  # imported before the baseline: only the loads are measured
+        cases = json.loads(sys.argv[1])
+        base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        out = {}
+        for case, root in cases.items():
+            try:
+                load_scene(root)
+                out[case] = ["loaded", ""]
+            except NimbusError as e:
+                out[case] = ["NimbusError", str(e)]
+            except BaseException as e:
+                out[case] = [type(e).__name__, str(e)[:200]]
+        grown_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base
+        print(json.dumps({"results": out, "grown_mb": grown_kb / 1024}))
+    """)
+    proc = subprocess.run([sys.executable, "-c", script, json.dumps(cases)], capture_output=True, text=True,
+                          timeout=120, cwd=Path(__file__).parent)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    for case, (kind, message) in report["results"].items():
+        assert kind == "NimbusError", (case, kind, message)
+        assert case.split("-")[0] in message and "corrupt" in message, (case, message)
+    assert report["grown_mb"] < 100, report["grown_mb"]
+
+
+@pytest.mark.parametrize("name", ["cameras.txt", "images.txt", "points3D.txt"])
+def test_garbage_line_in_a_text_model_names_the_file_and_line(tmp_path, name):
+    sparse = _colmap_scene(tmp_path, text=True) / "sparse" / "0"
+    lines = (sparse / name).read_text().splitlines()
+    lines.append("this is a garbage line")
+    (sparse / name).write_text("\n".join(lines) + "\n")
+    with pytest.raises(NimbusError, match=rf"{name} line {len(lines)}: .*garbage"):
+        load_scene(sparse.parent.parent)
+
+
+def test_binary_garbage_in_a_text_model_is_a_clear_error(tmp_path):
+    sparse = _colmap_scene(tmp_path, text=True) / "sparse" / "0"
+    (sparse / "cameras.txt").write_bytes(b"\xff\xfe\x00garbage\x80" * 10)
+    with pytest.raises(NimbusError, match="cameras.txt.*unreadable"):
+        load_scene(sparse.parent.parent)
+
+
+def test_nan_sparse_point_in_a_colmap_model_is_refused(tmp_path):
+    sparse = _colmap_scene(tmp_path) / "sparse" / "0"
+    data = bytearray((sparse / "points3D.bin").read_bytes())
+    data[16:24] = struct.pack("<d", float("nan"))  # x of the first point
+    (sparse / "points3D.bin").write_bytes(bytes(data))
+    with pytest.raises(NimbusError, match="points3D.bin: 1 of 40 sparse points have NaN"):
+        load_scene(sparse.parent.parent)
+
+
+# --- 3. camera values ------------------------------------------------------------------------
+@pytest.mark.parametrize("change, message", [
+    ({"cx": float("nan")}, "cx must be finite"),
+    ({"cy": float("inf")}, "cy must be finite"),
+    ({"fl_x": -20.0}, "focal lengths must be positive"),
+    ({"fl_x": "abc"}, "fl_x must be a number"),
+    ({"cx": None, "w": 0}, "w must be a positive whole number"),
+    ({"w": 16.5}, "w must be a positive whole number"),
+    ({"h": True}, "h must be a number"),
+    ({"camera_angle_x": 0.0, "fl_x": None}, "fl_x must be finite"),
+    ({"k1": float("nan")}, "k1 must be finite"),
+])
+def test_invalid_camera_values_in_transforms_json_name_the_file_and_frame(tmp_path, change, message):
+    frame0 = {k: v for k, v in change.items() if v is not None}
+    root = _transforms_scene(tmp_path, frame0=frame0)
+    if None in change.values():  # remove the top-level value so the frame's (or a derived one) is used
+        meta = json.loads((root / "transforms.json").read_text())
+        for k, v in change.items():
+            if v is None:
+                meta.pop(k)
+        (root / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(NimbusError, match=rf"transforms.json: frame 0 \(images/0.png\): .*{message}"):
+        load_scene(root)
+
+
+def test_invalid_pose_in_transforms_json_is_refused(tmp_path):
+    bad = np.eye(4)
+    bad[0, 3] = np.nan
+    root = _transforms_scene(tmp_path / "nan", frame0={"transform_matrix": bad.tolist()})
+    with pytest.raises(NimbusError, match="frame 0.*NaN or inf"):
+        load_scene(root)
+    skew = np.eye(4)
+    skew[0, 1] = 0.5
+    root = _transforms_scene(tmp_path / "skew", frame0={"transform_matrix": skew.tolist()})
+    with pytest.raises(NimbusError, match="frame 0.*rotation"):
+        load_scene(root)
+
+
+@pytest.mark.parametrize("field, offset, fmt, value, message", [
+    ("cx", 8 + 24 + 16, "<d", float("nan"), "cx must be finite"),
+    ("fx", 8 + 24, "<d", float("inf"), "fx must be finite"),
+    ("fy", 8 + 24 + 8, "<d", -30.0, "focal lengths must be positive"),
+    ("width", 8 + 8, "<Q", 0, "width must be a positive whole number"),
+])
+def test_invalid_camera_values_in_a_colmap_model_name_the_camera_and_image(tmp_path, field, offset, fmt, value,
+                                                                           message):
+    sparse = _colmap_scene(tmp_path) / "sparse" / "0"
+    data = bytearray((sparse / "cameras.bin").read_bytes())
+    data[offset:offset + struct.calcsize(fmt)] = struct.pack(fmt, value)
+    (sparse / "cameras.bin").write_bytes(bytes(data))
+    with pytest.raises(NimbusError, match=rf"camera 1 in .*sparse/0 \(image '000.png'\): .*{message}"):
+        load_scene(sparse.parent.parent)
+
+
+@pytest.mark.parametrize("legacy", [False, True], ids=["frames.bin", "images.bin"])
+def test_nan_pose_in_a_colmap_model_names_the_image(tmp_path, legacy):
+    sparse = _colmap_scene(tmp_path) / "sparse" / "0"
+    if legacy:  # a model from COLMAP < 3.12: the pose is in images.bin
+        (sparse / "rigs.bin").unlink()
+        (sparse / "frames.bin").unlink()
+        f, offset = sparse / "images.bin", 8 + 4 + 32  # count, image id, quaternion -> tx
+    else:  # COLMAP >= 3.12 reads the pose from the image's frame
+        f, offset = sparse / "frames.bin", 8 + 4 + 4 + 32  # count, frame id, rig id, quaternion -> tx
+    data = bytearray(f.read_bytes())
+    data[offset:offset + 8] = struct.pack("<d", float("nan"))
+    f.write_bytes(bytes(data))
+    with pytest.raises(NimbusError, match=r"\(image '000.png'\): camera pose contains NaN"):
+        load_scene(sparse.parent.parent)
+
+
+# --- 4. malformed JSON and PLY ---------------------------------------------------------------
+@pytest.mark.parametrize("value", [None, 5, ["images/0.png"], ""])
+def test_file_path_of_the_wrong_type_is_a_clear_error(tmp_path, value):
+    root = _transforms_scene(tmp_path, frame0={"file_path": value})
+    with pytest.raises(NimbusError, match="transforms.json: frame 0.*file_path.*not a file name"):
+        load_scene(root)
+
+
+@pytest.mark.parametrize("key, value", [("test_filenames", 5), ("test_filenames", [1, 2]),
+                                        ("train_filenames", {"a": 1}), ("val_filenames", "images/0.png")])
+def test_split_keys_of_the_wrong_type_are_a_clear_error(tmp_path, key, value):
+    root = _transforms_scene(tmp_path, top={key: value})
+    with pytest.raises(NimbusError, match=f'"{key}" must be a list of file paths'):
+        load_scene(root)
+
+
+def test_deeply_nested_or_non_json_transforms_is_a_clear_error(tmp_path):
+    (tmp_path / "deep").mkdir()
+    (tmp_path / "deep" / "transforms.json").write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(NimbusError, match="nested too deeply"):
+        load_scene(tmp_path / "deep")
+    (tmp_path / "digits").mkdir()
+    (tmp_path / "digits" / "transforms.json").write_text('{"frames": [], "w": ' + "9" * 5000 + "}")
+    with pytest.raises(NimbusError, match="not valid JSON"):
+        load_scene(tmp_path / "digits")
+    (tmp_path / "bin").mkdir()
+    (tmp_path / "bin" / "transforms.json").write_bytes(b"\x89PNG\r\n\x1a\n\xff\xfe")
+    with pytest.raises(NimbusError, match="not a UTF-8 text file"):
+        load_scene(tmp_path / "bin")
+
+
+PLY_HEAD = "ply\nformat {fmt} 1.0\n{element}property float x\nproperty float y\nproperty float z\nend_header\n"
+
+
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian"])
+@pytest.mark.parametrize("element, message", [
+    ("", "declares no vertices"),
+    ("element vertex\n", "malformed PLY header line"),
+    ("element vertex -3\n", "not a whole number"),
+    ("element vertex abc\n", "not a whole number"),
+    ("element vertex 1000000000000000000000000000000\n", "truncated or its vertex count is wrong"),
+    ("element vertex 5\n", "truncated|malformed"),
+])
+def test_ply_with_a_bad_vertex_count_is_a_clear_error(tmp_path, fmt, element, message):
+    body = "1 2 3\n" if fmt == "ascii" else struct.pack("<3f", 1, 2, 3).decode("latin-1")
+    ply = tmp_path / "p.ply"
+    ply.write_bytes((PLY_HEAD.format(fmt=fmt, element=element) + body).encode("latin-1"))
+    with pytest.raises(NimbusError, match=message):
+        read_ply_points(ply)
+    root = _transforms_scene(tmp_path / "s", top={"ply_file_path": "p.ply"})
+    (root / "p.ply").write_bytes(ply.read_bytes())
+    with pytest.raises(NimbusError, match=f"p.ply.*({message})"):
+        load_scene(root)
+
+
+def test_ply_without_end_of_header_and_with_nan_points(tmp_path):
+    (tmp_path / "a.ply").write_text("ply\nformat ascii 1.0\nelement vertex 1\nend_header")
+    with pytest.raises(NimbusError, match="not a PLY file"):
+        read_ply_points(tmp_path / "a.ply")
+    (tmp_path / "b.ply").write_text(PLY_HEAD.format(fmt="ascii", element="element vertex 2\n") + "1 2 3\nnan 0 0\n")
+    with pytest.raises(NimbusError, match="1 of 2 sparse points have NaN"):
+        read_ply_points(tmp_path / "b.ply")
+
+
+# --- 5. depth maps ---------------------------------------------------------------------------
+def _depth_scene(tmp_path, depth: np.ndarray, suffix=".npy"):
+    root = _colmap_scene(tmp_path, depth=True)
+    target = root / "depths" / "001.npy"
+    np.save(target, depth.astype(np.float32))
+    return load_scene(root).view("001.png")
+
+
+def test_negative_depth_is_refused(tmp_path):
+    d = np.full((24, 32), 3.0)
+    d[0, 0] = -1.0
+    with pytest.raises(NimbusError, match=r"001.npy has 1 negative value.*flipped sign"):
+        _depth_scene(tmp_path, d).load_depth()
+
+
+@pytest.mark.parametrize("fill", [np.nan, 0.0])
+def test_mostly_missing_depth_is_refused_and_a_few_holes_are_sky(tmp_path, fill):
+    d = np.full((24, 32), fill)
+    with pytest.raises(NimbusError, match=r"001.npy has no depth \(NaN or 0\) at 100%"):
+        _depth_scene(tmp_path / "all", d).load_depth()
+    d = np.full((24, 32), 2.5)
+    d[:3] = fill  # 12.5 % of the pixels: holes, read as "no surface"
+    back = _depth_scene(tmp_path / "few", d).load_depth()
+    assert np.isinf(back[:3]).all() and (back[3:] == np.float32(2.5)).all()
+
+
+def test_png_depth_zero_is_a_hole_and_all_zero_is_refused(tmp_path):
+    raw = np.full((4, 5), 2500, np.uint16)
+    raw[0, 0] = 0
+    cv2.imwrite(str(tmp_path / "d.png"), raw)
+    d = read_depth(tmp_path / "d.png")
+    assert np.isinf(d[0, 0]) and d[1, 1] == pytest.approx(2.5)
+    cv2.imwrite(str(tmp_path / "z.png"), np.zeros((4, 5), np.uint16))
+    with pytest.raises(NimbusError, match="z.png has no depth"):
+        read_depth(tmp_path / "z.png")
+
+
+def test_all_sky_depth_is_read_with_a_warning(tmp_path, caplog):
+    with caplog.at_level(logging.WARNING, logger="nimbus.data.images"):
+        d = _depth_scene(tmp_path, np.full((24, 32), np.inf)).load_depth()
+    assert np.isinf(d).all()
+    assert any("001.npy has no finite depth" in r.getMessage() for r in caplog.records)
+
+
+class _Payload:
+    """Unpickling this would create a file: a depth map must never run code."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def test_depth_files_are_never_unpickled_or_allocated_from_their_header(tmp_path):
+    marker = tmp_path / "pwned"
+    np.save(tmp_path / "p.npy", np.array([_Payload(str(marker))], dtype=object), allow_pickle=True)
+    with pytest.raises(NimbusError, match="p.npy is unreadable"):
+        read_depth(tmp_path / "p.npy")
+    assert not marker.exists()
+    with open(tmp_path / "huge.npy", "wb") as f:  # declares 80 GB, holds 16 bytes
+        np.lib.format.write_array_header_1_0(f, {"descr": "<f4", "fortran_order": False, "shape": (200000, 100000)})
+        f.write(b"\0" * 16)
+    with pytest.raises(NimbusError, match="huge.npy is unreadable"):
+        read_depth(tmp_path / "huge.npy")
+    np.save(tmp_path / "s.npy", np.array(["a", "b"]))
+    with pytest.raises(NimbusError, match="s.npy is unreadable"):
+        read_depth(tmp_path / "s.npy")
+    assert os.path.getsize(tmp_path / "huge.npy") < 1000
