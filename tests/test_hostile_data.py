@@ -164,6 +164,8 @@ def _corrupt(path: Path, how: str) -> None:
         data[:8] = struct.pack("<Q", 2**60)
     elif how == "half":
         data = data[: len(data) // 2]
+    elif how == "empty":
+        data = b""
     else:
         offset, fmt, value = VARIABLE_COUNTS[path.name]
         offset = _image_count_offset(bytes(data)) if offset is None else offset
@@ -171,13 +173,13 @@ def _corrupt(path: Path, how: str) -> None:
     path.write_bytes(bytes(data))
 
 
-@pytest.mark.parametrize("how", ["count", "half", "variable"])
+@pytest.mark.parametrize("how", ["count", "half", "variable", "empty"])
 @pytest.mark.parametrize("name", list(VARIABLE_COUNTS))
 def test_corrupt_binary_model_is_refused_naming_the_file(tmp_path, name, how):
     sparse = _colmap_scene(tmp_path) / "sparse" / "0"
     check_binary_model(sparse)  # the intact model passes
     _corrupt(sparse / name, how)
-    with pytest.raises(NimbusError, match=rf"{name} is corrupt and unreadable: .*(declares|truncated|unknown)"):
+    with pytest.raises(NimbusError, match=rf"{name} is corrupt and unreadable: .*(declares|truncated|unknown|empty)"):
         check_binary_model(sparse)
 
 

@@ -247,11 +247,17 @@ def check_binary_model(sparse_dir: str | os.PathLike) -> None:
             continue
         try:
             with open(path, "rb") as f:
-                size = os.fstat(f.fileno()).st_size
-                if size == 0:
-                    raise _Corrupt("is empty")
-                with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as buf:
+                if os.fstat(f.fileno()).st_size == 0:
+                    raise _Corrupt("the file is empty")
+                try:
+                    buf = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+                except OSError:  # a file system without mmap: read it (bounded by its size, not its counts)
+                    buf = f.read()
+                try:
                     walk(_RecordReader(buf))
+                finally:
+                    if isinstance(buf, mmap.mmap):
+                        buf.close()
         except _Corrupt as e:
             raise NimbusError(f"COLMAP model file {path} is corrupt and unreadable: {e}; re-export the model "
                               "from COLMAP (or restore the file from a backup)") from None
