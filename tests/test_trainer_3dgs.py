@@ -122,9 +122,12 @@ def test_view_with_no_visible_gaussian_does_not_crash(scene, tmp_path):
     t = GaussianTrainer(scene, _cfg(iterations=3, densify_from=100), tmp_path / "far", seed=0, progress=False)
     with torch.no_grad():
         t.params["means"].add_(1e6)  # everything far outside every view
-    t.train()
+    # The blind steps run (and are logged); a run that never saw a Gaussian then ends in a clear error, not results.
+    with pytest.raises(NimbusError, match="no Gaussian was visible"):
+        t.train()
     log = (tmp_path / "far" / "train_log.jsonl").read_text()
     assert "no_visible_gaussians" in log
+    assert not (tmp_path / "far" / "results.json").exists()
 
 
 def test_ply_has_standard_fields_and_round_trips(scene, tmp_path):

@@ -482,16 +482,26 @@ class NimbusTrainer(GaussianTrainer):
 
     # --- checkpoints --------------------------------------------------------------------
     def extra_state(self) -> dict:
+        """Tensors and plain Python values only (numbers cast from numpy), so ``--resume`` can load the
+        checkpoint with ``torch.load(weights_only=True)`` (see :func:`~nimbus.train.trainer.check_plain`)."""
         medium = None
         if self.use_csm:
-            medium = {"box": (self.box.lo, self.box.hi), "optimizer": self.medium_opt.state_dict(),
-                      "airlight": self.airlight.state_dict(),
+            medium = {"box": ([float(x) for x in self.box.lo], [float(x) for x in self.box.hi]),
+                      "optimizer": self.medium_opt.state_dict(), "airlight": self.airlight.state_dict(),
                       "field": self.field.state_dict() if self.field is not None else None,
                       "ext_log_scale": self.ext_log_scale.detach().clone() if self.ext_log_scale is not None else None,
-                      "initial_transmission": self.initial_transmission}
-        return {"use_csm": self.use_csm, "use_plm": self.use_plm, "use_ggs": self.use_ggs,
-                "particles": self.particles.to_dict() if self.particles is not None else None,
-                "time_saved": dict(self.time_saved), "timing": dict(self.timing), "counts": dict(self.counts),
+                      "initial_transmission": float(self.initial_transmission)}
+        particles = None
+        if self.particles is not None:
+            particles = {k: bool(v) if isinstance(v, (bool, np.bool_)) else float(v)
+                         for k, v in self.particles.to_dict().items()}
+        return {"use_csm": bool(self.use_csm),
+                "use_plm": None if self.use_plm is None else bool(self.use_plm),
+                "use_ggs": None if self.use_ggs is None else bool(self.use_ggs),
+                "particles": particles,
+                "time_saved": {k: float(v) for k, v in self.time_saved.items()},
+                "timing": {k: float(v) for k, v in self.timing.items()},
+                "counts": {k: int(v) for k, v in self.counts.items()},
                 "medium": medium, "store": self.store.state_dict() if self.store is not None else None}
 
     def load_extra_state(self, state: dict) -> None:

@@ -9,7 +9,8 @@ and outputs are shared.
 A run directory holds::
 
     config.json           the run's settings (scene path, method, seed, every config field)
-    checkpoint.pt         latest checkpoint (parameters, optimiser, densification stats, RNG)
+    checkpoint.pt         latest checkpoint (parameters, optimiser, densification stats, RNG); tensors and
+                          plain values only, read back with ``torch.load(weights_only=True)``
     train_log.jsonl       one JSON line every ``log_interval`` iterations and for every event
     point_cloud.ply       the final Gaussians in the standard 3DGS PLY layout
     renders/test/NAME.png renders of the held-out views
@@ -18,11 +19,15 @@ A run directory holds::
 
 from __future__ import annotations
 
+import collections
 import dataclasses
+import io
 import json
 import math
 import os
+import pickle
 import resource
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -44,10 +49,39 @@ from nimbus.render.rasterize import RasterConfig, means2d_grad, rasterize
 from nimbus.train.config import TrainConfig
 from nimbus.train.densify import DensityController, GaussianParams
 from nimbus.train.ply import write_gaussian_ply
-from nimbus.utils.fs import atomic_write_bytes, atomic_write_json
+from nimbus.utils.fs import atomic_write_bytes, atomic_write_json, atomic_write_text
 
 CHECKPOINT = "checkpoint.pt"
 LAST_GOOD = "checkpoint_last_good.pt"
+LOG = "train_log.jsonl"
+
+#: What a checkpoint may hold: tensors and these plain values, in dicts / lists / tuples.  This is what
+#: ``torch.load(weights_only=True)`` rebuilds without running code from the file, so a run folder received
+#: from someone else cannot execute anything on ``--resume``.
+PLAIN_TYPES = (type(None), bool, int, float, str)
+
+
+def check_plain(obj: Any, where: str = "state") -> None:
+    """Raise TypeError unless ``obj`` is tensors and :data:`PLAIN_TYPES` in dicts, lists and tuples.
+
+    Called on every checkpoint before it is written, so a method that puts a numpy scalar,
+    a dataclass or a module into its :meth:`GaussianTrainer.extra_state` fails at once (a
+    programming error) instead of writing a checkpoint that ``--resume`` would refuse.
+    """
+    if isinstance(obj, torch.Tensor) or type(obj) in PLAIN_TYPES:
+        return
+    if type(obj) in (dict, collections.OrderedDict):  # modules' state_dict() are OrderedDicts
+        for k, v in obj.items():
+            if type(k) not in (str, int):
+                raise TypeError(f"{where} has a {type(k).__name__} key {k!r}; checkpoint keys must be str or int")
+            check_plain(v, f"{where}[{k!r}]")
+        return
+    if type(obj) in (list, tuple):
+        for i, v in enumerate(obj):
+            check_plain(v, f"{where}[{i}]")
+        return
+    raise TypeError(f"{where} is a {type(obj).__module__}.{type(obj).__qualname__}; a checkpoint holds only "
+                    "tensors, None, bool, int, float and str in dicts, lists and tuples (torch.load weights_only)")
 
 
 def default_device() -> torch.device:
@@ -118,6 +152,8 @@ class GaussianTrainer:
         self.device = device or default_device()
         self.iteration = 0
         self.train_time = 0.0
+        #: Training steps in which at least one Gaussian was visible (a run with none learned nothing).
+        self.visible_steps = 0
         self.events: list[dict] = []
         torch.manual_seed(self.seed)
         np.random.seed(self.seed % 2**32)
@@ -205,7 +241,7 @@ class GaussianTrainer:
 
     def log(self, record: dict) -> None:
         record = {"iteration": self.iteration, **record}
-        with open(self.out / "train_log.jsonl", "a") as f:
+        with open(self.out / LOG, "a") as f:
             f.write(json.dumps(record) + "\n")
 
     def event(self, kind: str, **info: Any) -> None:
@@ -242,6 +278,7 @@ class GaussianTrainer:
                                       f"{self.out / LAST_GOOD}. Lower the learning rates (--set lr_...=...) or "
                                       "check the input images")
                 if loss.requires_grad and bool(render["meta"]["visible"].any()):
+                    self.visible_steps += 1
                     loss.backward()
                     meta = render["meta"]
                     grad2d = means2d_grad(meta)
@@ -254,7 +291,7 @@ class GaussianTrainer:
                                           f"{self.out / LAST_GOOD}. Lower the learning rates or check the inputs")
                     self.optimizer_step()
                 else:  # nothing in this view depends on the Gaussians: nothing to learn from it
-                    self.event("no_visible_gaussians", view=view.name)
+                    self.event("no_visible_gaussians", view=view.name, iteration=it)
                 self.iteration = it
                 self.after_step(it)
                 with torch.no_grad():
@@ -283,6 +320,7 @@ class GaussianTrainer:
             bar.close()
         self.train_time = time_offset + time.perf_counter() - start
         self.save_checkpoint()
+        self.check_trained()
         return self.finish()
 
     def after_step(self, it: int) -> None:
@@ -304,32 +342,103 @@ class GaussianTrainer:
     def all_param_groups(self) -> list[dict]:
         return list(self.params.optimizer.param_groups)
 
+    def check_trained(self) -> None:
+        """Refuse to write results from a model that is not one: non-finite parameters, or nothing ever seen.
+
+        The loss guard misses both: Gaussians that became NaN (e.g. an infinite learning rate)
+        or lie outside every view project to nothing, so the loss stays finite (the background
+        alone) while nothing is learned, and the PLY and the scores would be garbage.
+        """
+        bad = []
+        for group in self.all_param_groups():
+            for p in group["params"]:
+                if not bool(torch.isfinite(p.detach()).all()):
+                    bad.append(str(group.get("name", "?")))
+        if bad:
+            raise NimbusError(f"training ended with non-finite parameters ({', '.join(sorted(set(bad)))}) at "
+                              f"iteration {self.iteration}; no results were written. Lower the learning rates "
+                              "(--set lr_...=...) and check the inputs, then start a new run")
+        if self.iteration > 0 and self.visible_steps == 0:
+            raise NimbusError(f"no Gaussian was visible in any training view in {self.iteration} iterations, so "
+                              "nothing was learned; no results were written. Check the cameras (intrinsics, "
+                              "poses) and near_plane, and that the sparse points lie in front of the cameras")
+
     # --- checkpoints -------------------------------------------------------------------
     def state(self) -> dict:
-        return {"iteration": self.iteration, "train_time": self.train_time, "params": self.params.state_dict(),
+        """Everything :meth:`load_checkpoint` restores: tensors and plain values only (:func:`check_plain`)."""
+        return {"iteration": self.iteration, "train_time": float(self.train_time), "params": self.params.state_dict(),
                 "density": self.density.state_dict(), "generator": self.gen.get_state(),
-                "torch_rng": torch.get_rng_state(), "order": list(self._order), "extra": self.extra_state()}
+                "torch_rng": torch.get_rng_state(), "order": [int(i) for i in self._order],
+                "visible_steps": self.visible_steps, "extra": self.extra_state()}
 
     def save_checkpoint(self, name: str = CHECKPOINT) -> Path:
-        import io
-
+        state = self.state()
+        check_plain(state)
         buf = io.BytesIO()
-        torch.save(self.state(), buf)
+        torch.save(state, buf)
         return atomic_write_bytes(self.out / name, buf.getvalue())
 
-    def load_checkpoint(self, path: Path) -> None:
+    def load_checkpoint(self, path: str | os.PathLike) -> None:
+        """Restore the state saved in ``path`` and cut the training log back to its iteration.
+
+        The file is read with ``torch.load(weights_only=True)``: only tensors and plain values
+        are rebuilt, never arbitrary objects, since unpickling those can run code that the
+        file names.  A file holding anything else (a foreign or tampered file, a checkpoint of
+        an old Nimbus that pickled objects), a truncated file or one that does not fit this run
+        raises :class:`NimbusError`; the run folder is left as it was.
+        """
+        path = Path(path)
         try:
-            state = torch.load(path, map_location=self.device, weights_only=False)
-        except Exception as e:  # a truncated or foreign file
-            raise NimbusError(f"cannot read checkpoint {path} ({e.__class__.__name__}); start a new run") from None
+            state = torch.load(path, map_location=self.device, weights_only=True)
+        except pickle.UnpicklingError:
+            raise NimbusError(f"checkpoint {path} holds objects other than tensors and plain values (a file "
+                              "from an older Nimbus, or one that was tampered with); Nimbus does not load such "
+                              "files because unpickling them can run code. Start a new run with --out "
+                              "(nothing was loaded)") from None
+        except Exception as e:  # a truncated, empty or foreign file
+            raise NimbusError(f"cannot read checkpoint {path} ({e.__class__.__name__}: {str(e)[:200]}); it is "
+                              "corrupt or not a Nimbus checkpoint. Start a new run with --out") from None
+        try:
+            self._restore(state)
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError, RuntimeError) as e:
+            raise NimbusError(f"checkpoint {path} does not fit this run ({e.__class__.__name__}: {str(e)[:200]}); "
+                              "it was written for other settings or by another Nimbus version. Start a new run "
+                              "with --out") from None
+        self._truncate_log(self.iteration)
+
+    def _restore(self, state: dict) -> None:
         self.iteration = int(state["iteration"])
         self.train_time = float(state["train_time"])
         self.params.load_state_dict(state["params"])
         self.density.load_state_dict(state["density"])
         self.gen.set_state(state["generator"])
         torch.set_rng_state(state["torch_rng"])
-        self._order = list(state["order"])
+        self._order = [int(i) for i in state["order"]]
+        # Checkpoints written before the count existed: assume every step saw something.
+        self.visible_steps = int(state.get("visible_steps", self.iteration))
         self.load_extra_state(state["extra"])
+
+    def _truncate_log(self, iteration: int) -> None:
+        """Drop the log lines written after the checkpoint at ``iteration`` (the resumed run writes them again).
+
+        A line cut short by a kill is dropped too.  The log is rewritten atomically.
+        """
+        log = self.out / LOG
+        if not log.is_file():
+            return
+        kept, dropped = [], 0
+        for line in log.read_text(errors="replace").splitlines():
+            try:
+                rec = json.loads(line)
+                keep = isinstance(rec, dict) and int(rec.get("iteration", 0)) <= iteration
+            except (ValueError, TypeError):
+                keep = False
+            if keep:
+                kept.append(line)
+            else:
+                dropped += 1
+        if dropped:
+            atomic_write_text(log, "".join(f"{line}\n" for line in kept))
 
     def write_config(self) -> None:
         atomic_write_json(self.out / "config.json", {
@@ -348,10 +457,12 @@ class GaussianTrainer:
         reference = "clean" if all(p is not None for p in clean) else "input"
         per_view = {}
         render_times = []
+        seen = 0
         for view, clean_path in zip(views, clean):
             t0 = time.perf_counter()
             render = self.render(view)
             render_times.append(time.perf_counter() - t0)
+            seen += bool(render["meta"]["visible"].any())
             # Scored after the 8-bit round trip that the saved PNGs (and the benchmark) go through.
             pred = quantize_8bit(self.eval_image(view, render))
             write_image(self.out / "renders" / split / f"{view.stem}.png", pred.cpu().numpy())
@@ -362,7 +473,8 @@ class GaussianTrainer:
             per_view[view.name] = {"psnr": psnr(pred, gt), "ssim": float(ssim(pred, gt))}
         mean = {k: float(np.mean([v[k] for v in per_view.values()])) for k in ("psnr", "ssim")}
         fps = len(render_times) / max(sum(render_times), 1e-9)
-        return {"split": split, "reference": reference, "per_view": per_view, "render_fps": fps, **mean}
+        return {"split": split, "reference": reference, "per_view": per_view, "render_fps": fps,
+                "visible_views": seen, **mean}
 
     def _clean_path(self, view: View) -> Path | None:
         """``SCENE/clean/<name>`` of a dataset written by ``nimbus-synth degrade`` (its ``images/`` are the
@@ -373,10 +485,16 @@ class GaussianTrainer:
         return path if path.is_file() else None
 
     def finish(self) -> dict:
+        """Evaluate, then write ``point_cloud.ply`` and ``results.json`` (call :meth:`check_trained` first)."""
+        ev = self.evaluate()
+        if ev["visible_views"] == 0:
+            shutil.rmtree(self.out / "renders" / ev["split"], ignore_errors=True)
+            raise NimbusError(f"no Gaussian is visible in any {ev['split']} view, so its scores would only measure "
+                              "the background; no results were written. Check the cameras of those views "
+                              "(intrinsics, poses) and near_plane")
         g = self.gaussians().detach()
         write_gaussian_ply(self.out / "point_cloud.ply", g.means.cpu().numpy(), g.sh.cpu().numpy(),
                            g.opacity_logits.cpu().numpy(), g.log_scales.cpu().numpy(), g.quats.cpu().numpy())
-        ev = self.evaluate()
         results = {
             "method": self.method_name, "scene": self.scene_path, "seed": self.seed,
             "iterations": self.iteration, "train_time_s": round(self.train_time, 3),
