@@ -47,18 +47,66 @@ def write_gaussian_ply(path: str | os.PathLike, means: np.ndarray, sh: np.ndarra
     return atomic_write_bytes(path, header.encode("ascii") + data.astype("<f4").tobytes())
 
 
-def read_gaussian_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Read a 3DGS PLY written by :func:`write_gaussian_ply` (or the Inria code) into arrays."""
-    raw = Path(path).read_bytes()
+#: Properties :func:`read_gaussian_ply` needs (``f_rest_*`` are optional: SH degree 0).
+REQUIRED_PROPERTIES = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+                       "rot_0", "rot_1", "rot_2", "rot_3")
+
+
+def _parse_header(path, raw: bytes) -> tuple[int, list[str], int]:
+    """``(vertex count, float property names, offset of the data)`` of a binary little-endian 3DGS PLY.
+
+    Every way the header can be wrong (not a PLY, not ASCII, no / negative / non-integer vertex
+    count, properties that are not float32, missing ones) raises :class:`NimbusError`.
+    """
     end = raw.find(b"end_header\n")
-    if not raw.startswith(b"ply") or end < 0:
-        raise NimbusError(f"{path} is not a PLY file")
-    header = raw[:end].decode("ascii").splitlines()
+    if not raw.startswith(b"ply\n") or end < 0:
+        raise NimbusError(f"{path} is not a PLY file (no 'ply' / 'end_header' lines); give a point_cloud.ply "
+                          "written by nimbus-train or the 3DGS reference code")
+    try:
+        header = raw[:end].decode("ascii").splitlines()
+    except UnicodeDecodeError:
+        raise NimbusError(f"{path}: the PLY header is not ASCII text; the file is corrupt") from None
     if "format binary_little_endian 1.0" not in header:
         raise NimbusError(f"{path}: only binary little-endian PLY is supported")
-    n = next(int(line.split()[2]) for line in header if line.startswith("element vertex"))
-    names = [line.split()[2] for line in header if line.startswith("property float")]
-    data = np.frombuffer(raw[end + len(b"end_header\n"):], dtype="<f4", count=n * len(names)).reshape(n, len(names))
+    counts = [line.split() for line in header if line.startswith("element ")]
+    if not counts or counts[0][:2] != ["element", "vertex"] or len(counts) > 1:
+        raise NimbusError(f"{path}: expected one 'element vertex N' line and no other elements; the file is not "
+                          "a 3DGS point cloud")
+    try:
+        n = int(counts[0][2])
+    except (IndexError, ValueError):
+        raise NimbusError(f"{path}: 'element vertex' has no integer count; the file is corrupt") from None
+    if n < 0:
+        raise NimbusError(f"{path}: negative vertex count {n}; the file is corrupt")
+    props = [line.split() for line in header if line.startswith("property")]
+    if any(len(p) != 3 or p[1] != "float" for p in props):
+        raise NimbusError(f"{path}: every property must be 'property float NAME' (3DGS layout); the file is not "
+                          "a 3DGS point cloud")
+    names = [p[2] for p in props]
+    missing = [name for name in REQUIRED_PROPERTIES if name not in names]
+    n_rest = sum(1 for name in names if name.startswith("f_rest_"))
+    missing += [f"f_rest_{i}" for i in range(n_rest) if f"f_rest_{i}" not in names]
+    if missing or n_rest % 3 or len(set(names)) != len(names):
+        raise NimbusError(f"{path}: properties {', '.join(missing) or '(duplicated or f_rest not a multiple of 3)'} "
+                          "are missing or malformed; the file is not a 3DGS point cloud")
+    offset = end + len(b"end_header\n")
+    if len(raw) - offset < n * len(names) * 4:
+        raise NimbusError(f"{path}: the header declares {n} vertices of {len(names)} floats "
+                          f"({n * len(names) * 4} bytes) but the file holds {len(raw) - offset}; it is truncated")
+    return n, names, offset
+
+
+def read_gaussian_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Read a 3DGS PLY written by :func:`write_gaussian_ply` (or the Inria code) into arrays.
+
+    Raises NimbusError for a file that is not one (see :func:`_parse_header`).
+    """
+    try:
+        raw = Path(path).read_bytes()
+    except OSError as e:
+        raise NimbusError(f"cannot read {path} ({e.strerror or e.__class__.__name__}); check the path") from None
+    n, names, offset = _parse_header(path, raw)
+    data = np.frombuffer(raw, dtype="<f4", count=n * len(names), offset=offset).reshape(n, len(names))
     col = {name: data[:, i] for i, name in enumerate(names)}
     n_rest = sum(1 for name in names if name.startswith("f_rest_"))
     k = 1 + n_rest // 3
