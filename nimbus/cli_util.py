@@ -8,6 +8,27 @@ from typing import Callable, Sequence
 
 from nimbus.errors import NimbusError
 
+#: Seeds every Nimbus tool accepts: non-negative and below 2**32, the largest seed every generator
+#: a seed reaches takes (COLMAP's is an unsigned 32-bit int; numpy's legacy seeding stops there too).
+MAX_SEED = 2**32 - 1
+
+
+def check_seed(seed: object, what: str = "seed") -> int:
+    """``seed`` as an int in [0, :data:`MAX_SEED`]; anything else raises :class:`NimbusError`."""
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
+        raise NimbusError(f"{what} must be an integer in [0, {MAX_SEED}], got {seed!r}; pick a smaller "
+                          "non-negative seed")
+    return seed
+
+
+def seed_arg(text: str) -> int:
+    """argparse type of ``--seed``: an integer in [0, :data:`MAX_SEED`], else a usage error (exit 2, one line)."""
+    try:
+        return check_seed(int(text))
+    except (ValueError, NimbusError):
+        raise argparse.ArgumentTypeError(f"seed must be an integer in [0, {MAX_SEED}], got {text!r}; pick a "
+                                         "smaller non-negative seed") from None
+
 
 def run_cli(main: Callable[[Sequence[str] | None], int], argv: Sequence[str] | None = None) -> int:
     """Run ``main``; a :class:`NimbusError` becomes one ``error: ...`` line and exit code 2."""
