@@ -19,12 +19,12 @@ import numpy as np
 import pytest
 from conftest import make_tiny_scene
 
+from nimbus.cli_util import MAX_SEED
 from nimbus.data.images import encode_png
 from nimbus.data.io import write_scene
 from nimbus.errors import NimbusError
 from weather_synth import dataset as dataset_module
 from weather_synth.cli import main as synth_main
-from weather_synth.commands import MAX_SEED
 from weather_synth.config import protocol_config
 from weather_synth.dataset import degrade_scene
 from weather_synth.settings import parse_weather

@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from dataclasses import replace
 
+from nimbus.cli_util import MAX_SEED, seed_arg
 from nimbus.errors import NimbusError
-from weather_synth.commands import MAX_SEED, seed_arg
 from weather_synth.config import PROTOCOLS, SynthConfig, apply_overrides, protocol_config
 from weather_synth.compose import COMPOSITION_ORDERS
 from weather_synth.haze import HAZE_MODES

@@ -6,9 +6,9 @@ import argparse
 import json
 import time
 
+from nimbus.cli_util import MAX_SEED, seed_arg
 from nimbus.data.builtin import SCENES, SIZES, get_scene, get_size, list_scenes, write_builtin
 from nimbus.errors import NimbusError
-from weather_synth.commands import MAX_SEED, seed_arg
 
 HELP = "render a built-in outdoor scene (exact depth and sky mask) as a COLMAP scene folder"
 EXAMPLE = "nimbus-synth scene garden --size small --out scenes/garden"

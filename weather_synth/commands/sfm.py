@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from nimbus.cli_util import MAX_SEED, seed_arg
 from nimbus.data.sfm import CAMERA_MODELS, MATCHERS, SfmConfig, list_photos, run_sfm
-from weather_synth.commands import MAX_SEED, seed_arg
 
 HELP = "recover cameras and sparse points from photos (COLMAP SfM on the CPU) and write a scene folder"
 EXAMPLE = "nimbus-synth sfm my_photos/ --out scenes/garden"
