@@ -377,6 +377,16 @@ def test_a_run_that_fails_before_its_first_checkpoint_leaves_nothing(tmp_path, c
     assert (empty / "results.json").is_file()
 
 
+def test_overwrite_replaces_an_old_run_in_place(run, capsys):
+    (run / "old.txt").write_text("stale")
+    (run / "renders" / "test" / "stale.png").write_bytes(b"x")
+    mode = run.stat().st_mode
+    code, err = cli(["builtin:garden:tiny", *FAST, "--out", run, "--overwrite"], capsys)
+    assert code == 0, err
+    assert not (run / "old.txt").exists() and not (run / "renders" / "test" / "stale.png").exists()
+    assert (run / "results.json").is_file() and run.stat().st_mode == mode
+
+
 class _Killed(BaseException):
     """A kill between checkpoints: nothing is saved (unlike Ctrl-C)."""
 

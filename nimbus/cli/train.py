@@ -179,12 +179,14 @@ def _new_run(args, device):
     check_downscale(args.scene, args.downscale)
     # Before anything is deleted: --out SCENE --overwrite (or an ancestor of the scene) would remove the input.
     out = check_output_dir(args.out, args.overwrite, inputs=[scene_input_folder(args.scene)])
-    if args.overwrite and out.is_symlink():
-        raise NimbusError(f"--out {out} is a symbolic link; --overwrite replaces folders, not links. Give the "
-                          "folder it points to, or another --out")
     scene = load_scene_arg(args.scene, args.downscale)
-    if args.overwrite and out.is_dir() and any(out.iterdir()):
-        shutil.rmtree(out)
+    if args.overwrite and out.is_dir():
+        # Emptied rather than removed: that needs no write access to its parent, and keeps the folder's mode.
+        try:
+            _empty_folder(out)
+        except OSError as e:
+            raise NimbusError(f"--overwrite could not remove the old contents of {out} ({e.strerror}: "
+                              f"{e.filename}); fix the permissions or choose another --out") from None
     # What this run creates, to remove again if it fails before there is anything to resume:
     # the topmost missing folder on the way to --out, or the contents of an empty --out.
     created = next((p for p in reversed([out, *out.parents]) if not p.exists()), None)
@@ -207,12 +209,20 @@ def _remove_unresumable(out: Path, created: Path | None) -> None:
         return
     if created is not None:
         shutil.rmtree(created, ignore_errors=True)
-    elif out.is_dir():  # --out existed and was empty (check_output_dir refused anything else)
-        for p in out.iterdir():
-            if p.is_dir() and not p.is_symlink():
-                shutil.rmtree(p, ignore_errors=True)
-            else:
-                p.unlink(missing_ok=True)
+    elif out.is_dir():  # --out existed, and was empty or emptied by --overwrite
+        try:
+            _empty_folder(out)
+        except OSError:
+            pass  # the run's own error is the one to report
+
+
+def _empty_folder(folder: Path) -> None:
+    """Remove everything inside ``folder`` (links themselves, never what they point to)."""
+    for p in folder.iterdir():
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        else:
+            p.unlink()
 
 
 def _main(argv: Sequence[str] | None) -> int:
