@@ -411,8 +411,9 @@ class GaussianTrainer:
         self.train_time = float(state["train_time"])
         self.params.load_state_dict(state["params"])
         self.density.load_state_dict(state["density"])
-        self.gen.set_state(state["generator"])
-        torch.set_rng_state(state["torch_rng"])
+        # The generators live on the CPU whatever map_location moved the tensors to.
+        self.gen.set_state(state["generator"].cpu())
+        torch.set_rng_state(state["torch_rng"].cpu())
         self._order = [int(i) for i in state["order"]]
         # Checkpoints written before the count existed: assume every step saw something.
         self.visible_steps = int(state.get("visible_steps", self.iteration))
