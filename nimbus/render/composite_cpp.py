@@ -21,6 +21,14 @@ process and returns False, after ONE warning line, when that is impossible (no
 compiler, failed build); the caller then uses the torch compositor.
 ``NIMBUS_DISABLE_CPP=1`` makes it return False without trying and without warning.
 
+Instruction sets.  The float32 compositing tiles are compiled three times: for
+generic x86-64, AVX2 and AVX-512 (x86-64-v4); by default the best clone the CPU runs
+is used.  ``NIMBUS_CPU_ISA=generic|avx2|avx512`` (or :func:`set_cpu_isa`) forces one,
+so that every path can be tested on one machine (``auto`` or unset: the best);
+:func:`cpu_isas` lists the clones this machine runs and :func:`cpu_isa` names the one
+in use.  The clones run the same IEEE operations in the same order (no FMA
+contraction), so they give bitwise identical results (``tests/test_cross_cpu.py``).
+
 Contract
 --------
 Pixel ``(u, v)`` has its centre at ``(u + 0.5, v + 0.5)``.  For a pixel, walk its tile's
@@ -62,7 +70,15 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-__all__ = ["available", "load_error", "composite", "project_and_shade", "bin_gaussians"]
+from nimbus.errors import NimbusError
+
+__all__ = ["available", "load_error", "composite", "project_and_shade", "bin_gaussians", "cpu_isa", "cpu_isas",
+           "set_cpu_isa", "CPU_ISAS", "ISA_ENV"]
+
+#: Environment variable that forces the compositing kernel's instruction-set clone.
+ISA_ENV = "NIMBUS_CPU_ISA"
+#: The clones, slowest first (the names ISA_ENV accepts, besides ``auto``).
+CPU_ISAS = ("generic", "avx2", "avx512")
 
 # project.cpp (fused projection + SH shading with its backward, and tile binning) is built
 # into the same library: one build, one load, one availability flag.
@@ -88,7 +104,7 @@ _LOCK_POLL_S = 0.5
 _TREE_TAG = hashlib.sha1(str(Path(__file__).resolve().parent).encode()).hexdigest()[:8]
 
 _lock = threading.Lock()
-_state: dict = {"tried": False, "ok": False, "error": None, "warned": False}
+_state: dict = {"tried": False, "ok": False, "error": None, "warned": False, "isa_env": "auto"}
 
 
 def _clear_stale_lock(build_dir: str, idle_s: float = _IDLE_BUILD_S) -> bool:
@@ -163,10 +179,24 @@ def available(warn: bool = True) -> bool:
     -------
     bool
         False when ``NIMBUS_DISABLE_CPP=1`` or when the build/load failed (reason in
-        :func:`load_error`).  Never raises.
+        :func:`load_error`).
+
+    Raises
+    ------
+    NimbusError
+        Only when ``NIMBUS_CPU_ISA`` names a clone that does not exist or that this CPU
+        cannot run: forcing an instruction set must not fall back silently.
     """
     if os.environ.get("NIMBUS_DISABLE_CPP", "") not in ("", "0"):
         return False
+    ok = _load(warn)
+    if ok:
+        _apply_isa_env()
+    return ok
+
+
+def _load(warn: bool) -> bool:
+    """Build or load the library once per process (see :func:`available`)."""
     with _lock:
         if not _state["tried"]:
             _state["tried"] = True
@@ -185,7 +215,7 @@ def available(warn: bool = True) -> bool:
                 f"nimbus: compiled compositing kernel unavailable ({_state['error']}); "
                 "using the slower torch compositor",
                 RuntimeWarning,
-                stacklevel=2,
+                stacklevel=3,  # the caller of available()
             )
         return _state["ok"]
 
@@ -193,6 +223,61 @@ def available(warn: bool = True) -> bool:
 def load_error() -> str | None:
     """Why the kernel could not be built or loaded (one line), or None."""
     return _state["error"]
+
+
+def _require() -> None:
+    if not _state["ok"] and not available(warn=False):
+        raise RuntimeError(f"composite_cpp: the compiled kernel is unavailable ({load_error()})")
+
+
+def cpu_isas() -> tuple[str, ...]:
+    """The instruction-set clones of the compositing kernel this build has and this CPU runs, slowest first."""
+    _require()
+    return tuple(torch.ops.nimbus_composite.cpu_isas())
+
+
+def cpu_isa() -> str:
+    """The clone in use: ``"generic"``, ``"avx2"`` or ``"avx512"``."""
+    _require()
+    return str(torch.ops.nimbus_composite.cpu_isa())
+
+
+def set_cpu_isa(name: str) -> str:
+    """Force the compositing kernel's clone for this process; ``"auto"`` picks the best this CPU runs.
+
+    Parameters
+    ----------
+    name : str
+        ``"auto"`` or one of :data:`CPU_ISAS`.
+
+    Returns
+    -------
+    str
+        The clone now in use.
+
+    Raises
+    ------
+    NimbusError
+        An unknown name, or a clone this CPU (or this build) cannot run.
+    """
+    _require()
+    key = str(name).strip().lower()
+    if key not in ("auto",) + CPU_ISAS:
+        raise NimbusError(f"{ISA_ENV}={name} is not an instruction set of the kernel; use auto, "
+                          f"{', '.join(CPU_ISAS)} or leave {ISA_ENV} unset")
+    runs = cpu_isas()
+    if key != "auto" and key not in runs:
+        raise NimbusError(f"{ISA_ENV}={name}: this CPU (or this build of the kernel) cannot run the {key} clone; "
+                          f"it runs {', '.join(runs)}: pick one of those or leave {ISA_ENV} unset")
+    return str(torch.ops.nimbus_composite.set_cpu_isa(key))
+
+
+def _apply_isa_env() -> None:
+    """Apply ``NIMBUS_CPU_ISA`` when it changed since it was last applied (cheap when it did not)."""
+    want = os.environ.get(ISA_ENV, "").strip().lower() or "auto"
+    if want != _state["isa_env"]:
+        set_cpu_isa(want)
+        _state["isa_env"] = want
 
 
 class _Composite(torch.autograd.Function):

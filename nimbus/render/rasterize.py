@@ -267,6 +267,8 @@ def cpp_available() -> bool:
         return False
     try:
         return bool(composite_cpp.available())
+    except NimbusError:  # NIMBUS_CPU_ISA names a clone this CPU cannot run: forcing it must not fall back
+        raise
     except Exception:  # a failed build must fall back, never break rendering
         return False
 

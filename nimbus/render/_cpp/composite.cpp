@@ -19,11 +19,13 @@
 // bitwise identical whatever the thread count.
 //
 // Portability: built with generic x86-64 flags; on x86-64 with GCC the float32
-// tile functions also get AVX2 and AVX-512 clones chosen at load time
-// (target_clones).  There is no FMA contraction and no -ffast-math, and the
-// clones run the same IEEE operations in the same order, so they give identical
-// results.  float32 uses a vectorisable exp (Cephes polynomial, ~1 ulp); float64
-// uses std::exp (and exists for gradcheck and tests).
+// tile functions are also compiled for AVX2 and AVX-512 (x86-64-v4), and the
+// best clone this CPU runs is used unless set_cpu_isa() (NIMBUS_CPU_ISA, applied
+// by composite_cpp.py) forces another, so every path can be tested on one
+// machine.  There is no FMA contraction and no -ffast-math, and the clones run
+// the same IEEE operations in the same order, so they give identical results.
+// float32 uses a vectorisable exp (Cephes polynomial, ~1 ulp); float64 uses
+// std::exp (and exists for gradcheck and tests).
 //
 // Only light ATen headers are included (not torch/extension.h): the first build
 // takes seconds instead of tens of seconds.  Ops are registered with
@@ -43,15 +45,19 @@
 #include <cstring>
 #include <limits>
 #include <memory>
+#include <string>
 #include <tuple>
 #include <vector>
 
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 12
-#define NIMBUS_CLONES __attribute__((target_clones("arch=x86-64-v4", "avx2", "default")))
-#elif defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-#define NIMBUS_CLONES __attribute__((target_clones("avx2", "default")))
-#else
-#define NIMBUS_CLONES
+// Explicit per-ISA clones instead of target_clones: an ifunc picks its clone once,
+// at load, from the CPU alone, so the other paths could never run on this machine.
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#define NIMBUS_HAS_AVX2_CLONE 1
+#define NIMBUS_TARGET_AVX2 __attribute__((target("avx2")))
+#if __GNUC__ >= 12
+#define NIMBUS_HAS_AVX512_CLONE 1
+#define NIMBUS_TARGET_AVX512 __attribute__((target("arch=x86-64-v4")))
+#endif
 #endif
 #define NIMBUS_INLINE inline __attribute__((always_inline))
 
@@ -86,6 +92,49 @@ constexpr int kLanes = 8;
 // Per-intersection gradient slots: d means2d (2), d conics (3), d colors (3),
 // d opacity, d depth, |d means2d| summed per pixel (2).
 constexpr int kSlots = 12;
+
+// The float32 tile clones.  Names as NIMBUS_CPU_ISA spells them (composite_cpp.py).
+enum class Isa : int { kGeneric = 0, kAvx2 = 1, kAvx512 = 2 };
+constexpr const char* kIsaNames[] = {"generic", "avx2", "avx512"};
+
+// Whether this build has the clone and this CPU can run it.
+bool isa_runs(Isa isa) {
+  switch (isa) {
+    case Isa::kGeneric:
+      return true;
+#ifdef NIMBUS_HAS_AVX2_CLONE
+    case Isa::kAvx2:
+      __builtin_cpu_init();
+      return __builtin_cpu_supports("avx2");
+#endif
+#ifdef NIMBUS_HAS_AVX512_CLONE
+    case Isa::kAvx512:
+      __builtin_cpu_init();
+      return __builtin_cpu_supports("x86-64-v4");
+#endif
+    default:
+      return false;
+  }
+}
+
+Isa best_isa() {
+  for (Isa isa : {Isa::kAvx512, Isa::kAvx2}) {
+    if (isa_runs(isa)) return isa;
+  }
+  return Isa::kGeneric;
+}
+
+// Read on every tile call (a relaxed load costs nothing next to a tile); -1 = not chosen yet.
+std::atomic<int> g_isa{-1};
+
+Isa active_isa() {
+  int isa = g_isa.load(std::memory_order_relaxed);
+  if (isa < 0) {
+    isa = static_cast<int>(best_isa());
+    g_isa.store(isa, std::memory_order_relaxed);
+  }
+  return static_cast<Isa>(isa);
+}
 
 template <typename S>
 struct VecTypes;
@@ -496,9 +545,36 @@ NIMBUS_INLINE void forward_tile_impl(const Inputs<S>& in, int64_t t, ForwardScra
   }
 }
 
-NIMBUS_CLONES void forward_tile(const Inputs<float>& in, int64_t t, ForwardScratch<float>& s,
-                                const ForwardOut<float>& out) {
+void forward_tile_generic(const Inputs<float>& in, int64_t t, ForwardScratch<float>& s,
+                          const ForwardOut<float>& out) {
   forward_tile_impl(in, t, s, out);
+}
+#ifdef NIMBUS_HAS_AVX2_CLONE
+NIMBUS_TARGET_AVX2 void forward_tile_avx2(const Inputs<float>& in, int64_t t, ForwardScratch<float>& s,
+                                          const ForwardOut<float>& out) {
+  forward_tile_impl(in, t, s, out);
+}
+#endif
+#ifdef NIMBUS_HAS_AVX512_CLONE
+NIMBUS_TARGET_AVX512 void forward_tile_avx512(const Inputs<float>& in, int64_t t, ForwardScratch<float>& s,
+                                              const ForwardOut<float>& out) {
+  forward_tile_impl(in, t, s, out);
+}
+#endif
+void forward_tile(const Inputs<float>& in, int64_t t, ForwardScratch<float>& s,
+                  const ForwardOut<float>& out) {
+  switch (active_isa()) {
+#ifdef NIMBUS_HAS_AVX512_CLONE
+    case Isa::kAvx512:
+      return forward_tile_avx512(in, t, s, out);
+#endif
+#ifdef NIMBUS_HAS_AVX2_CLONE
+    case Isa::kAvx2:
+      return forward_tile_avx2(in, t, s, out);
+#endif
+    default:
+      return forward_tile_generic(in, t, s, out);
+  }
 }
 void forward_tile(const Inputs<double>& in, int64_t t, ForwardScratch<double>& s,
                   const ForwardOut<double>& out) {
@@ -653,9 +729,38 @@ NIMBUS_INLINE void backward_tile_impl(const Inputs<S>& in, int64_t t, BackwardSc
   }
 }
 
-NIMBUS_CLONES void backward_tile(const Inputs<float>& in, int64_t t, BackwardScratch<float>& s,
-                                 const BackwardIn<float>& bin, float* slots, int32_t* tile_count) {
+void backward_tile_generic(const Inputs<float>& in, int64_t t, BackwardScratch<float>& s,
+                           const BackwardIn<float>& bin, float* slots, int32_t* tile_count) {
   backward_tile_impl(in, t, s, bin, slots, tile_count);
+}
+#ifdef NIMBUS_HAS_AVX2_CLONE
+NIMBUS_TARGET_AVX2 void backward_tile_avx2(const Inputs<float>& in, int64_t t, BackwardScratch<float>& s,
+                                           const BackwardIn<float>& bin, float* slots,
+                                           int32_t* tile_count) {
+  backward_tile_impl(in, t, s, bin, slots, tile_count);
+}
+#endif
+#ifdef NIMBUS_HAS_AVX512_CLONE
+NIMBUS_TARGET_AVX512 void backward_tile_avx512(const Inputs<float>& in, int64_t t, BackwardScratch<float>& s,
+                                               const BackwardIn<float>& bin, float* slots,
+                                               int32_t* tile_count) {
+  backward_tile_impl(in, t, s, bin, slots, tile_count);
+}
+#endif
+void backward_tile(const Inputs<float>& in, int64_t t, BackwardScratch<float>& s,
+                   const BackwardIn<float>& bin, float* slots, int32_t* tile_count) {
+  switch (active_isa()) {
+#ifdef NIMBUS_HAS_AVX512_CLONE
+    case Isa::kAvx512:
+      return backward_tile_avx512(in, t, s, bin, slots, tile_count);
+#endif
+#ifdef NIMBUS_HAS_AVX2_CLONE
+    case Isa::kAvx2:
+      return backward_tile_avx2(in, t, s, bin, slots, tile_count);
+#endif
+    default:
+      return backward_tile_generic(in, t, s, bin, slots, tile_count);
+  }
 }
 void backward_tile(const Inputs<double>& in, int64_t t, BackwardScratch<double>& s,
                    const BackwardIn<double>& bin, double* slots, int32_t* tile_count) {
@@ -871,10 +976,42 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   return {g_means, g_conics, g_colors, g_opac, g_depths, g_abs};
 }
 
+// The clone the float32 tile functions use now ("generic", "avx2" or "avx512").
+std::string cpu_isa() { return kIsaNames[static_cast<int>(active_isa())]; }
+
+// The clones this build has and this CPU runs, slowest first.
+std::vector<std::string> cpu_isas() {
+  std::vector<std::string> out;
+  for (Isa isa : {Isa::kGeneric, Isa::kAvx2, Isa::kAvx512}) {
+    if (isa_runs(isa)) out.push_back(kIsaNames[static_cast<int>(isa)]);
+  }
+  return out;
+}
+
+// Forces a clone by name ("auto": the best this CPU runs) and returns the one now in use.
+// A clone the CPU cannot run is refused: it would die of an illegal instruction.
+std::string set_cpu_isa(const std::string& name) {
+  Isa want = best_isa();
+  if (name != "auto") {
+    int found = -1;
+    for (int i = 0; i < 3; ++i) {
+      if (name == kIsaNames[i]) found = i;
+    }
+    TORCH_CHECK(found >= 0, "unknown ISA '", name, "'; use auto, generic, avx2 or avx512");
+    want = static_cast<Isa>(found);
+    TORCH_CHECK(isa_runs(want), "this build or CPU cannot run the ", name, " clone");
+  }
+  g_isa.store(static_cast<int>(want), std::memory_order_relaxed);
+  return cpu_isa();
+}
+
 }  // namespace
 }  // namespace nimbus_composite
 
 TORCH_LIBRARY(nimbus_composite, m) {
   m.def("composite_forward", &nimbus_composite::composite_forward);
   m.def("composite_backward", &nimbus_composite::composite_backward);
+  m.def("cpu_isa", &nimbus_composite::cpu_isa);
+  m.def("cpu_isas", &nimbus_composite::cpu_isas);
+  m.def("set_cpu_isa", &nimbus_composite::set_cpu_isa);
 }
