@@ -15,6 +15,7 @@ COMMANDS = {
     "reference": "benchmark.reference",
     "tradeoff": "benchmark.tradeoff",
     "stability": "benchmark.stability",
+    "hostile": "benchmark.hostile",
 }
 
 TOOL = SubcommandTool(
