@@ -30,6 +30,7 @@ medium (never ``0 * inf = NaN``).
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -37,6 +38,7 @@ import numpy as np
 
 from nimbus.data.camera import Camera
 from nimbus.errors import NimbusError
+from weather_synth.particles import settle
 
 # Gauss-Legendre nodes/weights on [-1, 1]; 3 points integrate quintics exactly per segment.
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(3)
@@ -386,6 +388,8 @@ def estimate_up(cameras: list[Camera]) -> np.ndarray:
     """
     if not cameras:
         raise NimbusError("cannot estimate the up direction of a scene without views")
-    up = -np.mean([np.asarray(c.R)[1] for c in cameras], axis=0)
-    n = np.linalg.norm(up)
-    return up / n if n > 1e-9 else np.array([0.0, 0.0, 1.0])
+    up = -np.mean([np.asarray(c.R, np.float64)[1] for c in cameras], axis=0)
+    # math.hypot, not np.linalg.norm (a BLAS dot product that rounds differently on different CPUs), and
+    # rounded like the particle geometry: the recorded up vector is the same on every CPU.
+    n = math.hypot(*(float(x) for x in up))
+    return np.array([settle(x / n) for x in up]) if n > 1e-9 else np.array([0.0, 0.0, 1.0])

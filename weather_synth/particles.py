@@ -14,11 +14,22 @@ Pixel sizes in configs are given at a reference image width
 (:data:`REFERENCE_WIDTH`) and scaled with the image, so a preset looks the same
 at any resolution; densities are per reference-width pixel, so the number of
 particles per image does not depend on the resolution.
+
+Cross-CPU reproducibility: the geometry that places every particle (the fall
+direction, each image's fall angle, slice depths, kernel end points) is computed
+with Python's scalar maths in a fixed order and rounded far below what an image can
+show (:data:`ANGLE_DECIMALS`, :data:`GEOMETRY_DECIMALS`).  numpy evaluates float64
+``arctan2`` / ``tan`` / ``exp`` / ``log`` with SVML on AVX-512 CPUs and with the C
+library elsewhere, and the C library picks FMA or plain code by CPU, so their last
+bits differ between x86-64 machines (on one AVX-512 machine, 7 % of numpy's float64
+``arctan2`` results differ by one ulp from its AVX2 path); unrounded, those bits
+reached the recorded fall angles and so the dataset manifests.
 """
 
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -32,6 +43,21 @@ REFERENCE_WIDTH = 512
 MIN_SIGMA = 0.3
 # Layer values below this are numerical noise of the convolution and set to 0 (1/40 of an 8-bit step).
 FLOOR = 1e-4
+# Decimals kept of angles (degrees) and of other particle geometry (unit vectors, depths, kernel
+# end points): far below anything visible, far above the last bits that vary between CPUs.
+ANGLE_DECIMALS = 9
+GEOMETRY_DECIMALS = 12
+
+
+def settle(x: float, decimals: int = GEOMETRY_DECIMALS) -> float:
+    """``x`` rounded to ``decimals`` decimals (Python's correctly rounded ``round``): the same value on any CPU
+    whose maths library gets ``x`` right to within a few ulps (module docstring)."""
+    return round(float(x), decimals)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    """``v`` / its length, with CPython's ``math.hypot`` (no BLAS: its dot product may use FMA on some CPUs)."""
+    return v / math.hypot(*(float(x) for x in v))
 
 
 @dataclass
@@ -77,7 +103,8 @@ def _motion_kernel_cached(length_q: int, angle_q: int, sigma_q: int) -> np.ndarr
     k = 2 * (int(np.ceil(half_len)) + pad) + 1
     c = k // 2
     kern = np.zeros((k, k), np.float32)
-    dx, dy = np.cos(np.radians(angle)) * (half_len - 0.5), np.sin(np.radians(angle)) * (half_len - 0.5)
+    rad = math.radians(angle)
+    dx, dy = settle(math.cos(rad) * (half_len - 0.5)), settle(math.sin(rad) * (half_len - 0.5))
     shift = 4  # sub-pixel endpoints (1/16 px)
     p0 = (int(round((c - dx) * 16)), int(round((c - dy) * 16)))
     p1 = (int(round((c + dx) * 16)), int(round((c + dy) * 16)))
@@ -120,16 +147,14 @@ def render_streaks(seeds: np.ndarray, kernel: np.ndarray) -> np.ndarray:
 
 def fall_direction(up: np.ndarray, tilt_deg: float, azimuth_deg: float) -> np.ndarray:
     """World direction particles fall along: ``-up`` tilted by ``tilt_deg`` towards a horizontal azimuth."""
-    up = np.asarray(up, np.float64)
-    up = up / np.linalg.norm(up)
+    up = _unit(np.asarray(up, np.float64))
     a = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(up, a)
-    e1 /= np.linalg.norm(e1)
+    e1 = _unit(np.cross(up, a))
     e2 = np.cross(up, e1)
-    az = np.radians(azimuth_deg)
-    horizontal = np.cos(az) * e1 + np.sin(az) * e2
-    d = -up + np.tan(np.radians(tilt_deg)) * horizontal
-    return d / np.linalg.norm(d)
+    az = math.radians(azimuth_deg)
+    horizontal = math.cos(az) * e1 + math.sin(az) * e2
+    d = _unit(-up + math.tan(math.radians(tilt_deg)) * horizontal)
+    return np.array([settle(x) for x in d])
 
 
 def image_fall_angle(camera: Camera, direction: np.ndarray, depth: float = 1.0) -> float:
@@ -139,24 +164,25 @@ def image_fall_angle(camera: Camera, direction: np.ndarray, depth: float = 1.0) 
     of the camera's principal point.  When the direction is (nearly) along the
     optical axis the streaks would be dots; the vertical (90 degrees) is returned then.
     """
-    R = np.asarray(camera.R)
-    d_cam = R @ np.asarray(direction, np.float64)
-    p = np.array([0.0, 0.0, depth])
-    q = p + 0.05 * depth * d_cam
+    R = np.asarray(camera.R, np.float64)
+    d = [float(x) for x in np.asarray(direction, np.float64).reshape(3)]
+    # R @ d written out: a BLAS product may contract to FMA on some CPUs and not on others.
+    d_cam = [float(R[i, 0]) * d[0] + float(R[i, 1]) * d[1] + float(R[i, 2]) * d[2] for i in range(3)]
+    q = [0.05 * depth * d_cam[0], 0.05 * depth * d_cam[1], depth + 0.05 * depth * d_cam[2]]
     if q[2] <= 1e-9:
         return 90.0
     du = camera.fx * (q[0] / q[2])
     dv = camera.fy * (q[1] / q[2])
-    if np.hypot(du, dv) < 1e-3 * camera.fx * 0.05:
+    if math.hypot(du, dv) < 1e-3 * camera.fx * 0.05:
         return 90.0
-    return float(np.degrees(np.arctan2(dv, du)))
+    return settle(math.degrees(math.atan2(dv, du)), ANGLE_DECIMALS)
 
 
 def slice_depths(rng: np.random.Generator, depth_range: tuple[float, float], count: int, scale: float) -> np.ndarray:
     """``count`` slice depths stratified in log-depth over ``depth_range * scale`` (one per stratum, jittered)."""
-    lo, hi = np.log(depth_range[0] * scale), np.log(depth_range[1] * scale)
+    lo, hi = math.log(depth_range[0] * scale), math.log(depth_range[1] * scale)
     u = (np.arange(count) + rng.uniform(0, 1, count)) / count
-    return np.exp(lo + u * (hi - lo))
+    return np.array([settle(math.exp(lo + float(x) * (hi - lo))) for x in u])
 
 
 def hide_behind(layer: np.ndarray, z: float, surface_depth: np.ndarray | None) -> np.ndarray:

@@ -16,6 +16,7 @@ slices at stratified depths; radius, blur and streak length scale with
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -211,7 +212,7 @@ def render_snow(camera: Camera, rng: np.random.Generator, config: SnowConfig, fa
             if expected > cap:
                 # Undrawn flakes as a veil: Poisson discs of mean area a cover 1 - exp(-n a / area).
                 area = np.pi * np.mean(np.square(np.maximum(radius, MIN_RADIUS)))
-                veil = (1 - np.exp(-(expected - cap) * area / (shape[0] * shape[1]))) * np.mean(c.opacity)
+                veil = (1 - math.exp(-(expected - cap) * area / (shape[0] * shape[1]))) * np.mean(c.opacity)
                 alpha = 1 - (1 - alpha) * np.float32(1 - veil)
             alpha = hide_behind(alpha, float(z), surface_depth if depth_aware else None)
             result.slices.append(ParticleSlice("snow", alpha.astype(np.float32), float(z)))
