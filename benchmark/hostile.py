@@ -203,8 +203,9 @@ def _sparse(root: Path) -> Path:
     return root / "sparse" / "0"
 
 
-def _rename_in_images_txt(scene: Path, old: str, new: str) -> None:
-    """Rename view ``old`` to ``new`` in a text model's images.txt (image lines end with the name)."""
+def _rename_view(scene: Path, old: str, new: str) -> None:
+    """Rename view ``old`` to ``new`` in a text model's images.txt (image lines end with the name) and in
+    the split lists, so that the loader gets as far as the hostile name instead of a split mismatch."""
     path = _sparse(scene) / "images.txt"
     lines = path.read_text().splitlines()
     hits = [i for i, line in enumerate(lines) if not line.startswith("#") and line.split()[-1:] == [old]]
@@ -212,6 +213,9 @@ def _rename_in_images_txt(scene: Path, old: str, new: str) -> None:
         raise RuntimeError(f"{old} not found in {path}")
     lines[hits[0]] = lines[hits[0]][: -len(old)] + new
     path.write_text("\n".join(lines) + "\n")
+    for split in scene.glob("*_list.txt"):
+        split.write_text("".join(new + "\n" if line.strip() == old else line + "\n"
+                                 for line in split.read_text().splitlines()))
 
 
 def _name_attack(absolute: bool) -> Callable[[Sandbox], None]:
@@ -221,7 +225,7 @@ def _name_attack(absolute: bool) -> Callable[[Sandbox], None]:
         target = (sb.box / "canary" / "003.png") if absolute else (sb.outside / "003.png")
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(scene / "images" / "003.png", target)
-        _rename_in_images_txt(scene, "003.png", str(target) if absolute else "../../../outside/003.png")
+        _rename_view(scene, "003.png", str(target) if absolute else "../../../outside/003.png")
     return prepare
 
 

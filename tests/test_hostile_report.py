@@ -211,6 +211,21 @@ def test_case_selection():
         HostileCase("x", "y", "nimbus-train", (), "maybe", _prepare)
 
 
+def test_a_renamed_view_is_renamed_in_the_split_lists_too(tmp_path):
+    """Otherwise the loader stops at a split mismatch and never meets the hostile name (a false pass)."""
+    sparse = tmp_path / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    (sparse / "images.txt").write_text("# header\n1 1 0 0 0 0 0 0 1 002.png\n\n2 1 0 0 0 0 0 0 1 003.png\n\n")
+    (tmp_path / "train_list.txt").write_text("002.png\n003.png\n")
+    (tmp_path / "test_list.txt").write_text("001.png\n")
+    hostile._rename_view(tmp_path, "003.png", "../../x.png")
+    assert (sparse / "images.txt").read_text().splitlines()[3] == "2 1 0 0 0 0 0 0 1 ../../x.png"
+    assert (tmp_path / "train_list.txt").read_text() == "002.png\n../../x.png\n"
+    assert (tmp_path / "test_list.txt").read_text() == "001.png\n"
+    with pytest.raises(RuntimeError):
+        hostile._rename_view(tmp_path, "009.png", "y.png")
+
+
 # --- end to end -------------------------------------------------------------------------------
 def _read_csv(path: Path) -> list[dict]:
     with open(path, newline="") as f:
