@@ -389,6 +389,14 @@ def _says_depth(sb: Sandbox, children: list) -> list[str]:
     return []
 
 
+def _names(text: str) -> Callable[[Sandbox, list], list[str]]:
+    """Check: the error line quotes ``text`` (a bad value's message must say which value is wrong)."""
+    def check(sb: Sandbox, children: list) -> list[str]:
+        lines = [line for c in children for line in c.stderr.splitlines() if line.startswith("error:")]
+        return [] if not lines or any(text in line for line in lines) else [f"the error does not name {text}"]
+    return check
+
+
 #: The line ``nimbus-bench run`` prints when cells failed.
 _FAILED_CELLS = re.compile(r"^\d+ cell\(s\) failed", re.MULTILINE)
 
@@ -483,7 +491,7 @@ CASES: tuple[HostileCase, ...] = (
     *(HostileCase(f"set_{key.split('.')[-1]}_{name}", f"--set {key}={value}", tool,
                   _t("--set", f"{key}={value}") if tool == "nimbus-train" else ("degrade",) + _d("--set",
                                                                                              f"{key}={value}"),
-                  "clear error", _scene)
+                  "clear error", _scene, check=_names(f"{key}={value}"))
       for key, value, name, tool in (
           ("lr_means_init", "inf", "inf", "nimbus-train"), ("near_plane", "nan", "nan", "nimbus-train"),
           ("checkpoint_interval", "0", "0", "nimbus-train"), ("log_interval", "0", "0", "nimbus-train"),

@@ -90,6 +90,13 @@ def test_a_grid_run_that_skipped_locked_cells_finished_but_one_with_failures_did
     assert hostile.classify_grid_run(_child(1, "Traceback (most recent call last):\n" + skipped))[0] == "crash"
 
 
+def test_a_bad_value_error_must_name_the_value():
+    check = hostile._names("haze.beta=abc")
+    assert check(None, [_child(2, "error: --set haze.beta=abc: must be a number >= 0\n")]) == []
+    assert check(None, [_child(2, "error: 'haze.beta': ufunc 'isnan' not supported for the input types\n")])
+    assert check(None, [_child(0, "")]) == []  # no error line: the outcome check already fails it
+
+
 # --- snapshots ------------------------------------------------------------------------------
 def test_compare_separates_inputs_outside_and_out(tmp_path):
     (tmp_path / "sandbox" / "scene").mkdir(parents=True)
