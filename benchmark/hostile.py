@@ -336,12 +336,14 @@ def _read_only_out(sb: Sandbox) -> None:
     os.chmod(sb.box / OUT, 0o555)
 
 
-def _nan_depth(sb: Sandbox) -> None:
-    import numpy as np
+def _fill_depth(value: float) -> Callable[[Sandbox], None]:
+    """depths/000.npy filled with ``value`` (NaN, negative: no usable depth anywhere)."""
+    def prepare(sb: Sandbox) -> None:
+        import numpy as np
 
-    scene = _scene(sb)
-    path = scene / "depths" / "000.npy"
-    np.save(path, np.full(np.load(path).shape, np.nan, np.float32))
+        path = _scene(sb) / "depths" / "000.npy"
+        np.save(path, np.full(np.load(path).shape, value, np.float32))
+    return prepare
 
 
 def _scene_in_data(sb: Sandbox) -> None:
@@ -480,6 +482,8 @@ CASES: tuple[HostileCase, ...] = (
                 _edit_bytes("sparse/0/points3D.bin", _huge_count), budget=True),
     HostileCase("points3d_truncated", "points3D.bin cut in half", "nimbus-train", _t(), "clear error",
                 _edit_bytes("sparse/0/points3D.bin", _half), budget=True),
+    HostileCase("degrade_points3d_count_2e60", "points3D.bin declares 2^60 points", "nimbus-synth",
+                ("degrade",) + _d(), "clear error", _edit_bytes("sparse/0/points3D.bin", _huge_count), budget=True),
     HostileCase("images_bin_count_2e60", "images.bin declares 2^60 images", "nimbus-train", _t(), "clear error",
                 _edit_bytes("sparse/0/images.bin", _huge_count), budget=True),
     HostileCase("images_bin_truncated", "images.bin cut in half", "nimbus-train", _t(), "clear error",
@@ -529,7 +533,11 @@ CASES: tuple[HostileCase, ...] = (
     HostileCase("unknown_weather", "--weather H+hail", "nimbus-synth",
                 ("degrade", SCENE, "--out", OUT, "--weather", "H+hail", "--quiet"), "clear error", _scene),
     HostileCase("nan_depth", "depths/000.npy all NaN, haze from scene depth (refuse, or finish and say so)",
-                "nimbus-synth", ("degrade",) + _d("--depth", "scene"), "either", _nan_depth, check=_says_depth),
+                "nimbus-synth", ("degrade",) + _d("--depth", "scene"), "either", _fill_depth(float("nan")),
+                check=_says_depth),
+    HostileCase("negative_depth", "depths/000.npy all -1, haze from scene depth (refuse, or finish and say so)",
+                "nimbus-synth", ("degrade",) + _d("--depth", "scene"), "either", _fill_depth(-1.0),
+                check=_says_depth),
     HostileCase("corrupt_image", "images/005.png is not an image", "nimbus-train", _t(), "clear error",
                 _edit_bytes("images/005.png", lambda b: b"\x89PNG\r\n\x1a\n" + bytes(range(256)) * 4)),
     HostileCase("two_grid_runs", "two nimbus-bench run at once on one root (a run may skip cells the other "
@@ -596,6 +604,26 @@ def obeying_permissions(argv: list[str]) -> list[str]:
     return list(_NO_DAC) + argv
 
 
+#: Started in place of a tool: forks, execs the tool, waits, and writes its exit status and resource usage to
+#: the file argv[1].  A child forked straight from the harness would carry the harness's own resident size
+#: (torch is loaded here) into its ru_maxrss when it execs; through this launcher it carries ~10 MB.
+_LAUNCHER = r"""
+import json, os, sys
+pid = os.fork()
+if pid == 0:
+    try:
+        os.execvp(sys.argv[2], sys.argv[2:])
+    except OSError as e:
+        sys.stderr.write(f"launcher: cannot run {sys.argv[2]}: {e}\n")
+    os._exit(127)
+_, status, ru = os.wait4(pid, 0)
+with open(sys.argv[1], "w") as f:
+    json.dump({"status": status, "maxrss_kb": ru.ru_maxrss, "cpu_s": ru.ru_utime + ru.ru_stime}, f)
+code = os.waitstatus_to_exitcode(status)
+sys.exit(code if code >= 0 else 128 - code)
+"""
+
+
 def start_children(argv: list[str], cwd: Path, logs: Path, n: int = 1, timeout_s: float = TIMEOUT_S,
                    memory_mb: float = MEMORY_LIMIT_MB, unprivileged: bool = False) -> list[Child]:
     """Run ``n`` copies of ``argv`` at once in ``cwd`` and wait for all; each is killed (with its process
@@ -608,11 +636,13 @@ def start_children(argv: list[str], cwd: Path, logs: Path, n: int = 1, timeout_s
     failures: list[BaseException] = []
 
     def one(i: int) -> None:
-        err_path = logs / f"stderr{i}.txt"
+        err_path, usage_path = logs / f"stderr{i}.txt", logs / f"usage{i}.json"
+        usage_path.unlink(missing_ok=True)
         with open(logs / f"stdout{i}.txt", "wb") as out, open(err_path, "wb") as err:
             t0 = time.perf_counter()
             try:
-                proc = subprocess.Popen(argv, cwd=cwd, stdin=subprocess.DEVNULL, stdout=out, stderr=err, env=env,
+                proc = subprocess.Popen([sys.executable, "-c", _LAUNCHER, str(usage_path), *argv], cwd=cwd,
+                                        stdin=subprocess.DEVNULL, stdout=out, stderr=err, env=env,
                                         start_new_session=True)
             except OSError as e:
                 failures.append(e)
@@ -626,7 +656,7 @@ def start_children(argv: list[str], cwd: Path, logs: Path, n: int = 1, timeout_s
                 if why:
                     killed.append(why)
                     try:
-                        os.killpg(proc.pid, signal.SIGKILL)
+                        os.killpg(proc.pid, signal.SIGKILL)  # the launcher and the tool share its group
                     except ProcessLookupError:
                         pass
                     return
@@ -638,8 +668,12 @@ def start_children(argv: list[str], cwd: Path, logs: Path, n: int = 1, timeout_s
         proc.returncode = os.waitstatus_to_exitcode(status)
         seconds = time.perf_counter() - t0
         watcher.join()
-        results[i] = Child(proc.returncode, err_path.read_text(errors="replace"), seconds,
-                           usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024, "; ".join(killed))
+        try:  # the tool's own figures; a killed launcher wrote none: the group's figures then
+            tool = json.loads(usage_path.read_text())
+            code, cpu, peak = os.waitstatus_to_exitcode(tool["status"]), tool["cpu_s"], tool["maxrss_kb"] / 1024
+        except (OSError, ValueError, KeyError):
+            code, cpu, peak = proc.returncode, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024
+        results[i] = Child(code, err_path.read_text(errors="replace"), seconds, cpu, peak, "; ".join(killed))
 
     threads = [threading.Thread(target=one, args=(i,)) for i in range(n)]
     for t in threads:
@@ -746,21 +780,23 @@ def _must(argv: list[str], cwd: Path) -> None:
 
 @dataclass(frozen=True)
 class Baseline:
-    """CPU seconds and peak MB of ``nimbus-train`` failing on a scene without a model (the fixed cost)."""
+    """CPU seconds and peak MB of a budget case's command failing on a scene without a model (the fixed cost)."""
 
     cpu_s: float
     peak_mb: float
 
 
-def measure_baseline(work: Path, base: Base, repeats: int = 3) -> Baseline:
-    """The budget's baseline: the least of ``repeats`` runs (less noise than one)."""
-    sb = Sandbox(work / "baseline", base)
+def measure_baseline(work: Path, base: Base, case: HostileCase, repeats: int = 3) -> Baseline:
+    """The budget's baseline for ``case``: its command on the scene without ``sparse/``, least of ``repeats`` runs
+    (less noise than one)."""
+    sb = Sandbox(work / "baseline" / case.name, base)
     shutil.rmtree(sb.root, ignore_errors=True)
     shutil.rmtree(_scene(sb) / "sparse")
-    runs = [start_children(tool_argv("nimbus-train") + list(_t()), sb.box, sb.logs)[0] for _ in range(repeats)]
+    argv = tool_argv(case.tool) + list(case.args)
+    runs = [start_children(argv, sb.box, sb.logs)[0] for _ in range(repeats)]
     if any(classify_outcome(c)[0] != "clear error" for c in runs):
-        raise NimbusError(f"the budget baseline (nimbus-train on a scene without a model) did not end in a clear "
-                          f"error: {runs[0].stderr.strip()[-300:]}")
+        raise NimbusError(f"the budget baseline ({case.command} on a scene without a model) did not end in a "
+                          f"clear error: {runs[0].stderr.strip()[-300:]}")
     return Baseline(min(c.cpu_s for c in runs), min(c.peak_mb for c in runs))
 
 
@@ -808,7 +844,9 @@ def run_case(case: HostileCase, work: Path, base: Base, baseline: Baseline | Non
             problems.append(what)
     if case.marker and (sb.root / case.marker).exists():
         problems.append("code ran (marker file appeared)")
-    if case.budget and baseline is not None:
+    if case.budget and baseline is None:
+        row["budget"] = "no baseline measured"
+    elif case.budget:
         extra_s, extra_mb = row["cpu_s"] - baseline.cpu_s, row["peak_mb"] - baseline.peak_mb
         within = extra_s < BUDGET_S and extra_mb < BUDGET_MB and not children[0].killed
         row["budget"] = f"{extra_s:+.2f} s, {extra_mb:+.0f} MB: {'ok' if within else 'over'}"
@@ -844,11 +882,17 @@ def run_report(cases: Sequence[HostileCase], work: str | Path,
     say = log or (lambda s: print(s, file=sys.stderr, flush=True))
     work = Path(work)
     base = build_base(work)
-    baseline = measure_baseline(work, base) if any(c.budget for c in cases) else None
-    if baseline is not None:
-        say(f"budget baseline: {baseline.cpu_s:.2f} CPU s, {baseline.peak_mb:.0f} MB")
+    baselines: dict[tuple, Baseline] = {}  # one per command: the budget cases of a tool share theirs
     rows = []
     for i, case in enumerate(cases, 1):
+        baseline = None
+        if case.budget:
+            key = (case.tool, case.args)
+            if key not in baselines:
+                baselines[key] = measure_baseline(work, base, case)
+                say(f"budget baseline of {case.command}: {baselines[key].cpu_s:.2f} CPU s, "
+                    f"{baselines[key].peak_mb:.0f} MB")
+            baseline = baselines[key]
         rows.append(run_case(case, work, base, baseline))
         r = rows[-1]
         say(f"[{i}/{len(cases)}] {case.name}: {r['outcome']} ({_short(r['message'], 90)}) -> {r['verdict']}")

@@ -184,6 +184,14 @@ def test_the_watchdog_kills_a_child_past_its_limits(tmp_path):
     assert fat.killed.startswith("resident memory")
 
 
+def test_a_childs_peak_memory_is_its_own_not_the_harnesss(tmp_path):
+    """A child forked from a big process inherits its resident size into ru_maxrss at exec."""
+    ballast = b"x" * (250 << 20)  # noqa: F841 - the harness's own resident memory
+    child = hostile.start_children([sys.executable, "-c", "pass"], tmp_path, tmp_path / "l")[0]
+    assert 0 < child.peak_mb < 100 and child.exit_code == 0
+    del ballast
+
+
 def test_a_harness_failure_is_not_blamed_on_the_tool(fake_tool, tmp_path):
     def broken(sb):
         raise OSError("disk full")
