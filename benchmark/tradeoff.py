@@ -240,7 +240,7 @@ def _variation(base: Cell, base_config, name: str, value: str) -> Cell:
         try:
             make_config(get_method(method_name), base.preset, ov)
         except NimbusError as e:
-            raise NimbusError(f"--knob {name}={value}: {e}") from None
+            raise NimbusError(f"--knob {name}={value}: {_without_set_prefix(e)}") from None
         return Cell(base.scene, base.weather, method_name, base.preset, base.seed, base.size,
                     tuple(sorted(ov.items())))
     setting = value.replace("+", ",") if name == "components" else value
@@ -249,10 +249,18 @@ def _variation(base: Cell, base_config, name: str, value: str) -> Cell:
         config = make_config(get_method(base.method), base.preset, ov)
     except NimbusError as e:
         hint = "".join(f" (or {v}: the {m} method)" for v, m in METHOD_VALUES.items()) if name == "components" else ""
-        raise NimbusError(f"--knob {name}={value}: {e}{hint}") from None
+        raise NimbusError(f"--knob {name}={value}: {_without_set_prefix(e)}{hint}") from None
     if config == base_config:
         return base
     return Cell(base.scene, base.weather, base.method, base.preset, base.seed, base.size, tuple(sorted(ov.items())))
+
+
+def _without_set_prefix(error: Exception) -> str:
+    """The config's message without its ``--set KEY=VALUE:`` lead (the knob's own lead names the value)."""
+    msg = str(error)
+    if msg.startswith("--set ") and ": " in msg:
+        return msg.split(": ", 1)[1]
+    return msg
 
 
 def sweep_cells(points: Sequence[SweepPoint]) -> list[Cell]:

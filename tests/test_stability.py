@@ -107,7 +107,7 @@ def test_report_runs_cases_and_writes_the_table(tmp_path, capsys):
     assert "components: csm, plm, ggs" in got[("white_inputs", "nimbus-full")]["message"]
     bad = got[("negative_haze_beta", "3dgs")]
     assert (bad["outcome"], bad["stage"], bad["verdict"]) == ("clear error", "synthesis", "ok")
-    assert "beta must be >= 0" in bad["message"] and bad["psnr"] == "n/a"
+    assert "haze.beta=-1: must be a number >= 0" in bad["message"] and bad["psnr"] == "n/a"
     assert got[("bad_trainer_setting", "3dgs")]["outcome"] == "clear error"
     assert got[("bad_trainer_setting", "3dgs")]["stage"] == "set-up"
     md = (out / "stability.md").read_text()

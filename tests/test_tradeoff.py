@@ -114,7 +114,7 @@ def test_default_sweep_shares_the_base_cell_and_switches_method_for_3dgs():
 
 
 @pytest.mark.parametrize("knob, match", [
-    ("iterations=0", "iterations=0: must be an integer >= 1"),
+    ("iterations=0", r"^--knob iterations=0: must be an integer >= 2"),
     ("components=csm+fog", "unknown fog"),
     ("not_a_setting=1", "no setting 'not_a_setting'"),
 ])
