@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import platform
 import sys
 import time
 import warnings
@@ -26,11 +25,9 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-import torch
 
 from benchmark.lpips import LPIPS_NETS
 from benchmark.metrics import LPIPS, SSIM_PROTOCOLS, Scorer, summarize
-from nimbus import __version__
 from nimbus.data import load_scene
 from nimbus.data.images import read_image
 from nimbus.data.io import format_names, image_size, list_images
@@ -217,9 +214,10 @@ def _refuse_dataset_root(scene_dir: Path) -> None:
 
 
 def versions() -> dict[str, str]:
-    """Software versions that can change the figures."""
-    return {"nimbus": __version__, "torch": torch.__version__, "numpy": np.__version__,
-            "python": platform.python_version()}
+    """Software versions that can change the figures (:func:`nimbus.versions.software_versions`)."""
+    from nimbus.versions import software_versions
+
+    return software_versions()
 
 
 def jsonable(obj: Any) -> Any:

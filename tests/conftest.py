@@ -10,13 +10,13 @@ from nimbus.data.scene import Scene, View
 
 
 def make_tiny_scene(n_views: int = 5, width: int = 32, height: int = 24, n_points: int = 40, seed: int = 0,
-                    depth: bool = False, mask: bool = False, test_names=None) -> Scene:
+                    depth: bool = False, mask: bool = False, sky: bool = False, test_names=None) -> Scene:
     """An in-memory scene: look-at cameras on a ring around the origin, random images and points.
 
     Parameters
     ----------
-    depth, mask : bool
-        Also give every view a random z-depth map (float32 (H, W), in [1, 5]) / bool mask.
+    depth, mask, sky : bool
+        Also give every view a random z-depth map (float32 (H, W), in [1, 5]) / bool validity mask / sky mask.
     test_names : iterable of str, optional
         The test split (default: the first view, ``"000.png"``).
     """
@@ -31,6 +31,7 @@ def make_tiny_scene(n_views: int = 5, width: int = 32, height: int = 24, n_point
             image=rng.random((height, width, 3), dtype=np.float32),
             depth=rng.uniform(1, 5, (height, width)).astype(np.float32) if depth else None,
             mask=rng.random((height, width)) > 0.5 if mask else None,
+            sky=rng.random((height, width)) > 0.7 if sky else None,
         ))
     points = rng.normal(size=(n_points, 3))
     colors = rng.integers(0, 256, (n_points, 3), dtype=np.uint8)

@@ -111,7 +111,7 @@ def test_culling_and_adaptive_sampling_match_the_reference(name):
     fast = render_view(world, cam, RenderSettings(2))
     ref = render_view(world, cam, RenderSettings(2, adaptive_threshold=None, cull=False))
     np.testing.assert_array_equal(fast.depth, ref.depth)
-    np.testing.assert_array_equal(fast.mask, ref.mask)
+    np.testing.assert_array_equal(fast.sky, ref.sky)
     assert np.abs(fast.image - ref.image).mean() < 0.01
 
 
@@ -144,9 +144,9 @@ def test_tiny_scene_is_sane(tiny_scenes, name):
         assert v.image.min() >= 0 and v.image.max() <= 1 and v.image.std() > 0.05
         assert v.depth.dtype == np.float32 and v.depth.shape == v.image.shape[:2]
         assert np.all(np.isfinite(v.depth)) and v.depth.min() > 0.3
-        assert v.mask.dtype == bool and 0.01 < v.mask.mean() < 0.6
+        assert v.sky.dtype == bool and 0.01 < v.sky.mean() < 0.6
         # The backdrop is far: every backdrop pixel is deeper than every object pixel nearby.
-        assert v.depth[v.mask].min() > 0.5 * v.depth.max()
+        assert v.depth[v.sky].min() > 0.5 * v.depth.max()
         depths.append(v.depth)
     d = np.stack(depths)
     assert d.max() / d.min() >= 20
@@ -228,7 +228,7 @@ def test_same_seed_writes_identical_bytes(tmp_path):
     b = write_builtin("street", tmp_path / "b", "tiny", seed=3)
     files_a, files_b = _tree_bytes(a), _tree_bytes(b)
     assert {"manifest.json", "train_list.txt", "test_list.txt", "images/000.png", "depths/000.npy",
-            "masks/000.png"} <= set(files_a)
+            "sky/000.png"} <= set(files_a)
     assert any(k.startswith("sparse/0/") for k in files_a)
     assert files_a.keys() == files_b.keys()
     different = [k for k in files_a if files_a[k] != files_b[k]]
@@ -246,7 +246,7 @@ def test_written_scene_reads_back(tmp_path):
     v, w = disk.views[4], mem.views[4]
     assert np.abs(v.load_image() - w.image).max() <= 0.5 / 255 + 1e-6
     np.testing.assert_array_equal(v.load_depth(), w.depth)
-    np.testing.assert_array_equal(v.load_mask(), w.mask)
+    np.testing.assert_array_equal(v.load_sky(), w.sky)
     np.testing.assert_allclose(v.camera.world_to_camera, w.camera.world_to_camera, atol=1e-9)
     np.testing.assert_allclose(disk.points, mem.points, atol=1e-9)
 

@@ -18,7 +18,7 @@ from nimbus.utils.fs import atomic_dir
 
 @pytest.mark.parametrize("text", [False, True], ids=["bin", "txt"])
 def test_round_trip_keeps_poses_intrinsics_points_images_depths_masks(tmp_path, make_scene, assert_same_scene, text):
-    scene = make_scene(depth=True, mask=True, test_names={"001.png", "003.png"})
+    scene = make_scene(depth=True, mask=True, sky=True, test_names={"001.png", "003.png"})
     out = write_scene(scene, tmp_path / "scene", text=text)
     suffix = ".txt" if text else ".bin"
     assert (out / "sparse" / "0" / f"cameras{suffix}").is_file()
@@ -32,6 +32,7 @@ def test_round_trip_keeps_poses_intrinsics_points_images_depths_masks(tmp_path, 
         np.testing.assert_allclose(w.load_image(), v.image, atol=0.5 / 255 + 1e-6)
         np.testing.assert_array_equal(w.load_depth(), v.depth)
         np.testing.assert_array_equal(w.load_mask(), v.mask)
+        np.testing.assert_array_equal(w.load_sky(), v.sky)
     # COLMAP itself (pycolmap) reads the written model with every image.
     rec = pycolmap.Reconstruction(out / "sparse" / "0")
     assert rec.num_reg_images() == len(scene) and rec.num_points3D() == len(scene.points)

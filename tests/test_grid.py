@@ -125,7 +125,7 @@ def test_local_run_records_and_scores_against_clean_views(finished):
         assert rec["iterations"] == 5 and rec["num_gaussians"] > 0
         assert rec["num_params"] >= rec["num_gaussians"] * 11
         assert len(rec["config_hash"]) == 64 and rec["config"]["iterations"] == 5
-        assert {"nimbus", "torch", "numpy"} <= rec["versions"].keys()
+        assert {"nimbus", "torch", "numpy", "pycolmap", "cpu_isa"} <= rec["versions"].keys()
         assert rec["peak_memory_mb"] > 0 and rec["render_fps"] > 0 and rec["started_at"] <= rec["finished_at"]
         assert not list((root / "runs").glob("*.partial"))
 

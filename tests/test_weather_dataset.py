@@ -50,7 +50,7 @@ def test_layout_manifest_and_layers(tmp_path, garden, assert_same_scene):
     assert summaries[0].mean_transmission is not None and summaries[1].mean_transmission is None
     for name in ("H", "R+S"):
         d = out / name
-        for sub in ("images", "clean", "sparse/0", "layers", "depths", "masks"):
+        for sub in ("images", "clean", "sparse/0", "layers", "depths", "sky"):
             assert (d / sub).is_dir(), sub
         assert (d / "manifest.json").is_file() and (d / "train_list.txt").is_file()
         back = load_scene(d)  # trainers read it as any COLMAP scene

@@ -160,11 +160,11 @@ def test_depth_source_errors_name_the_fix(tmp_path):
         DepthConfig("lidar")
 
 
-def test_masked_backdrop_is_infinitely_far():
+def test_sky_backdrop_is_infinitely_far():
     cam = camera()
     mask = np.zeros((H, W), bool)
     mask[:10] = True
-    scene = Scene((View("a.png", cam, image=smooth_image(), depth=np.full((H, W), 3.0, np.float32), mask=mask),))
+    scene = Scene((View("a.png", cam, image=smooth_image(), depth=np.full((H, W), 3.0, np.float32), sky=mask),))
     d, _ = DepthSource(scene, DepthConfig("scene"))(scene.views[0])
     assert np.all(np.isinf(d[:10])) and np.all(d[10:] == 3.0)
     d, _ = DepthSource(scene, DepthConfig("scene", backdrop_at_infinity=False))(scene.views[0])

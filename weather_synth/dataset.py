@@ -13,7 +13,7 @@ Layout of ``OUT`` (setting folder names: :mod:`weather_synth.settings`)::
                                  when no image had to be renamed to .png, all but
                                  the point colours); point colours from the
                                  setting's degraded train views (below)
-        depths/, masks/          the scene's depth maps and masks, when it has them
+        depths/, masks/, sky/    the scene's depth maps, validity and sky masks, when it has them
         train_list.txt, test_list.txt   the split
         layers/<stem>.npz        per-view float32 ground-truth layers (below)
         manifest.json            every parameter, every per-view sampled value,
@@ -206,10 +206,10 @@ def layer_name(name: str) -> str:
 
 
 def scene_inputs(scene: Scene) -> list[Path]:
-    """Every file and folder ``scene`` is read from: its root and each view's image, depth and mask file."""
+    """Every file and folder ``scene`` is read from: its root and each view's image, depth, mask and sky file."""
     inputs = [Path(scene.root)] if scene.root is not None else []
     for v in scene.views:
-        inputs += [Path(p) for p in (v.image_path, v.depth_path, v.mask_path) if p is not None]
+        inputs += [Path(p) for p in (v.image_path, v.depth_path, v.mask_path, v.sky_path) if p is not None]
     return inputs
 
 
@@ -499,7 +499,7 @@ def _manifest(scene: Scene, setting: WeatherSetting, config: SynthConfig, synth:
             "transmission": "(H, W) float32 camera-to-surface transmission (haze)",
             "airlight": "(3,) float32 RGB airlight, display values (haze)",
             "depth": "(H, W) float32 z-depth used for haze, scene units, inf = sky (haze; only when estimated "
-                     "by --depth sparse / onnx, else see depths/ and masks/)",
+                     "by --depth sparse / onnx, else see depths/ and sky/)",
             "rain": "(H, W) float32 additive rain radiance before attenuation (rain)",
             "snow": "(H, W) float32 snow alpha (snow)",
             "rain_depth": "(H, W) float32 z-depth of the dominant rain slice, inf = none, 0 = no depth (rain)",

@@ -13,7 +13,7 @@ Every source returns a z-depth map, float32 (H, W), in scene units, with
     (:func:`cv2.ximgproc.guidedFilter`) guided by the image.  Inverse depth is
     interpolated because it is what varies linearly across a planar surface in
     the image.  Without a mask, sky pixels get the depth of the nearest points
-    (SfM has no points there): give masks or use ``onnx``.
+    (SfM has no points there): give sky masks (``sky/``) or use ``onnx``.
 ``onnx:MODEL.onnx``
     A monocular relative inverse-depth network (Depth-Anything-v2 style: NCHW
     float input normalised with the ImageNet mean / std, sides multiples of 14)
@@ -361,9 +361,9 @@ class DepthSource:
                 depth, info = onnx_depth(self.model, view.camera, image, self.scene.points, self.config, view.name)
         depth = sanitize_depth(depth)
         if self.config.backdrop_at_infinity:
-            mask = view.load_mask()
-            if mask is not None:
-                depth = np.where(mask, np.float32(np.inf), depth)
+            sky = view.load_sky()
+            if sky is not None:
+                depth = np.where(sky, np.float32(np.inf), depth)
         return depth, info
 
     def describe(self) -> dict:

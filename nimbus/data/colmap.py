@@ -6,7 +6,7 @@ Layout read
 ``ROOT/sparse``, as ``colmap image_undistorter`` writes it), ``.bin`` or
 ``.txt``.  With ``downscale=d`` the images come from Mip-NeRF360's
 ``ROOT/images_<d>`` and each camera is scaled to its file's true size.  Optional
-``depths/``, ``masks/``, ``train_list.txt`` / ``test_list.txt`` (see
+``depths/``, ``masks/``, ``sky/``, ``train_list.txt`` / ``test_list.txt`` (see
 :mod:`nimbus.data.io`).
 
 Files received from elsewhere are not trusted: every image name must stay inside
@@ -26,7 +26,7 @@ Layout written
 ``sparse/0`` with one ``PINHOLE`` camera per distinct intrinsics, the poses,
 and the sparse points with their colours.  Points are written with empty
 tracks (COLMAP, pycolmap, 3DGS and gsplat read them; the 3DGS initialisation
-needs only xyz and colour).  Also ``depths/``, ``masks/`` and the split lists.
+needs only xyz and colour).  Also ``depths/``, ``masks/``, ``sky/`` and the split lists.
 """
 
 from __future__ import annotations

@@ -41,7 +41,7 @@ from nimbus.utils.fs import atomic_dir
 log = logging.getLogger(__name__)
 
 SCENE_FORMATS = ("colmap", "transforms")
-DEPTH_DIR, MASK_DIR = "depths", "masks"
+DEPTH_DIR, MASK_DIR, SKY_DIR = "depths", "masks", "sky"
 # How many names an error or warning lists before it just counts the rest.
 MAX_LISTED_NAMES = 10
 
@@ -170,7 +170,7 @@ def check_not_input(scene: Scene, out: str | os.PathLike) -> None:
     out = Path(out).resolve()
     inputs = [scene.root] if scene.root is not None else []
     for v in scene.views:
-        inputs += [p for p in (v.image_path, v.depth_path, v.mask_path) if p is not None]
+        inputs += [p for p in (v.image_path, v.depth_path, v.mask_path, v.sky_path) if p is not None]
     for p in inputs:
         p = Path(p).resolve()
         if p == out or out in p.parents:
@@ -250,11 +250,12 @@ def _jpeg_size(f, head: bytes) -> tuple[int, int] | None:
         f.seek(length - 2, 1)
 
 
-def aux_dirs(downscale: int) -> tuple[str, str]:
-    """Folder names of depth maps and masks for a downscale factor (``depths`` or ``depths_4``...)."""
+def aux_dirs(downscale: int) -> tuple[str, str, str]:
+    """Folder names of depth maps, validity masks and sky masks for a downscale factor (``depths`` or
+    ``depths_4``...)."""
     if downscale == 1:
-        return DEPTH_DIR, MASK_DIR
-    return f"{DEPTH_DIR}_{downscale}", f"{MASK_DIR}_{downscale}"
+        return DEPTH_DIR, MASK_DIR, SKY_DIR
+    return f"{DEPTH_DIR}_{downscale}", f"{MASK_DIR}_{downscale}", f"{SKY_DIR}_{downscale}"
 
 
 def aux_name(name: str, suffix: str) -> str:
@@ -263,7 +264,7 @@ def aux_name(name: str, suffix: str) -> str:
 
 
 def attach_aux_files(root: Path, views: list[View], downscale: int) -> list[View]:
-    """Attach ``depths/<stem>.npy`` and ``masks/<stem>.png`` to the views that have them.
+    """Attach ``depths/<stem>.npy``, ``masks/<stem>.png`` and ``sky/<stem>.png`` to the views that have them.
 
     A folder that exists but lacks some views' files gets a warning naming them.  A file
     that leads outside the scene (a link, or a folder linked elsewhere) is refused
@@ -271,12 +272,13 @@ def attach_aux_files(root: Path, views: list[View], downscale: int) -> list[View
     """
     from dataclasses import replace
 
-    depth_dir, mask_dir = (root / d for d in aux_dirs(downscale))
+    depth_dir, mask_dir, sky_dir = (root / d for d in aux_dirs(downscale))
     out = []
-    missing: dict[str, list[str]] = {depth_dir.name: [], mask_dir.name: []}
+    missing: dict[str, list[str]] = {depth_dir.name: [], mask_dir.name: [], sky_dir.name: []}
     for v in views:
         changes = {}
-        for folder, suffix, field in ((depth_dir, ".npy", "depth_path"), (mask_dir, ".png", "mask_path")):
+        for folder, suffix, field in ((depth_dir, ".npy", "depth_path"), (mask_dir, ".png", "mask_path"),
+                                      (sky_dir, ".png", "sky_path")):
             if not folder.is_dir():
                 continue
             f = folder / aux_name(v.name, suffix)
@@ -375,12 +377,15 @@ def write_view_files(scene: Scene, directory: Path, image_dir: str = "images") -
                 _copy(v.depth_path, dst, "depth map")
             else:
                 write_depth(dst, v.load_depth())
-        if v.mask is not None or v.mask_path is not None:
-            dst = directory / MASK_DIR / aux_name(names[v.name], ".png")
-            if v.mask is None and Path(v.mask_path).suffix == ".png":
-                _copy(v.mask_path, dst, "mask")
+        for array, path, folder, what, load in ((v.mask, v.mask_path, MASK_DIR, "mask", v.load_mask),
+                                                (v.sky, v.sky_path, SKY_DIR, "sky mask", v.load_sky)):
+            if array is None and path is None:
+                continue
+            dst = directory / folder / aux_name(names[v.name], ".png")
+            if array is None and Path(path).suffix == ".png":
+                _copy(path, dst, what)
             else:
-                write_mask(dst, v.load_mask())
+                write_mask(dst, load())
     written = Scene(views=tuple(View(names[v.name], v.camera) for v in scene.views),
                     test_names=frozenset(names[n] for n in scene.test_names))
     write_split_lists(written, directory)

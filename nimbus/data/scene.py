@@ -36,14 +36,19 @@ class View:
     camera : Camera
     image_path : Path or None
         File to load the RGB image from (when ``image`` is None).
-    depth_path, mask_path : Path or None
-        Optional z-depth map (``.npy`` / 16-bit PNG) and a bool mask (True = sky /
-        backdrop for built-in scenes).
+    depth_path : Path or None
+        Optional z-depth map (``.npy`` / 16-bit PNG).
+    mask_path : Path or None
+        Optional validity mask (PNG; non-zero = the pixel counts, 0 = ignore it in training
+        and scoring), the ``masks/`` / nerfstudio ``mask_path`` convention of the peers.
+    sky_path : Path or None
+        Optional sky mask (PNG; non-zero = the pixel sees the sky / backdrop, at infinite
+        depth), written for built-in scenes in ``sky/``; used by haze synthesis only.
     image : ndarray or None
         In-memory float32 (H, W, 3) image in [0, 1]; takes precedence over ``image_path``.
-    depth, mask : ndarray or None
-        In-memory z-depth (float32 (H, W), inf where there is no surface) and bool
-        mask; take precedence over the paths.
+    depth, mask, sky : ndarray or None
+        In-memory z-depth (float32 (H, W), inf where there is no surface), bool validity
+        mask and bool sky mask; take precedence over the paths.
     """
 
     name: str
@@ -54,6 +59,8 @@ class View:
     image: np.ndarray | None = None
     depth: np.ndarray | None = None
     mask: np.ndarray | None = None
+    sky_path: Path | None = None
+    sky: np.ndarray | None = None
 
     def load_image(self) -> np.ndarray:
         """The RGB image, float32 (H, W, 3) in [0, 1], checked against the camera size."""
@@ -86,11 +93,23 @@ class View:
         return d
 
     def load_mask(self) -> np.ndarray | None:
-        if self.mask is not None:
-            return self.mask
-        if self.mask_path is None:
+        """The validity mask, bool (H, W) (True = use the pixel), or None when every pixel counts."""
+        return self._load_bool(self.mask, self.mask_path, "mask")
+
+    def load_sky(self) -> np.ndarray | None:
+        """The sky mask, bool (H, W) (True = sky / backdrop), or None when the view has none."""
+        return self._load_bool(self.sky, self.sky_path, "sky mask")
+
+    def _load_bool(self, array: np.ndarray | None, path: Path | None, what: str) -> np.ndarray | None:
+        if array is not None:
+            return array
+        if path is None:
             return None
-        return read_mask(self.mask_path)
+        m = read_mask(path)
+        if m.shape != (self.camera.height, self.camera.width):
+            raise NimbusError(f"{what} {path} is {m.shape[1]}x{m.shape[0]}; its camera is "
+                              f"{self.camera.width}x{self.camera.height}")
+        return m
 
     @property
     def stem(self) -> str:

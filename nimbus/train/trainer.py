@@ -44,6 +44,7 @@ from nimbus.data.images import read_image, write_image
 from nimbus.errors import NimbusError
 from nimbus.losses import photometric_loss, psnr, ssim
 from nimbus.render.gaussians import GaussianInitConfig, Gaussians, init_from_scene
+from nimbus.versions import software_versions
 from nimbus.render.projection import ProjectionConfig
 from nimbus.render.rasterize import RasterConfig, means2d_grad, rasterize
 from nimbus.train.config import TrainConfig
@@ -113,7 +114,7 @@ def downscaled_view(view: View, factor: int) -> View:
     small = torch.nn.functional.interpolate(img, size=(h, w), mode="area")[0].permute(1, 2, 0)
     return dataclasses.replace(view, camera=view.camera.scaled(1.0 / factor, width=w, height=h),
                                image=small.contiguous().numpy(), image_path=None, depth=None, depth_path=None,
-                               mask=None, mask_path=None)
+                               mask=None, mask_path=None, sky=None, sky_path=None)
 
 
 class GaussianTrainer:
@@ -503,7 +504,7 @@ class GaussianTrainer:
             "eval_split": ev["split"], "eval_reference": ev["reference"], "psnr": ev["psnr"], "ssim": ev["ssim"],
             "render_fps": ev["render_fps"],
             "per_view": ev["per_view"], "device": str(self.device), "nimbus_version": nimbus.__version__,
-            **self.extra_results(),
+            "versions": software_versions(), **self.extra_results(),
         }
         atomic_write_json(self.out / "results.json", results)
         return results

@@ -24,13 +24,13 @@ Sizes (:data:`SIZES`)
 Outputs
     Views are named ``000.png``, ``001.png``, ...  Each carries the image (float32
     (H, W, 3) in [0, 1]), the z-depth of the ray through the pixel centre (float32
-    (H, W), finite) and a mask (bool (H, W), True where that ray hits the sky /
+    (H, W), finite) and a sky mask (bool (H, W), True where that ray hits the sky /
     backdrop).  The test split follows the LLFF rule (every 8th view: 000, 008, ...).
     Sparse points come from unprojected depth maps (:mod:`~nimbus.data.builtin.points`).
     World up is +z; units are metres.
 
 Determinism
-    The same (scene, size, seed) gives bit-identical images, depths, masks, points
+    The same (scene, size, seed) gives bit-identical images, depths, sky masks, points
     and files.  The seed shifts every texture and jitters object positions
     (centimetres to decimetres) and camera poses (a few centimetres, a fraction of a
     degree), and the orbit's starting angle for ``garden``.
@@ -166,7 +166,7 @@ def manifest(name: str, size: str, seed: int, image_count: int) -> dict:
             "world_up": [0.0, 0.0, 1.0],
             "units": "metres",
             "depth": "float32 z-depth of the ray through the pixel centre (finite; backdrop is a surface)",
-            "mask": "True where the pixel-centre ray hits the sky / backdrop",
+            "sky": "True where the pixel-centre ray hits the sky / backdrop",
             "test_split": "LLFF rule: every 8th view by name (000, 008, ...)",
         },
     }
@@ -193,7 +193,7 @@ def render_builtin(name: str, size: str = "tiny", seed: int = 0, progress: bool 
     Returns
     -------
     Scene
-        ``source_format="builtin"``, views with in-memory image / depth / mask, the LLFF
+        ``source_format="builtin"``, views with in-memory image / depth / sky mask, the LLFF
         test split, sparse points, and in ``metadata`` the :func:`manifest` plus
         ``depth_range`` ([min, max] z-depth over all views, metres) and ``sparse_points``.
     """
@@ -209,13 +209,13 @@ def render_builtin(name: str, size: str = "tiny", seed: int = 0, progress: bool 
                                                    file=sys.stderr, disable=not progress, leave=False) as bar:
         views = []
         for i, r in enumerate(pool.map(lambda cam: render_view(world, cam, preset.render_settings), cameras)):
-            views.append(View(f"{i:03d}.png", cameras[i], image=r.image, depth=r.depth, mask=r.mask))
+            views.append(View(f"{i:03d}.png", cameras[i], image=r.image, depth=r.depth, sky=r.sky))
             bar.update()
     names = [v.name for v in views]
     test = llff_test_names(names)
     train = [v for v in views if v.name not in set(test)]
     points, colors = sample_points([v.camera for v in train], [v.image for v in train], [v.depth for v in train],
-                                   [v.mask for v in train], preset.points, seed)
+                                   [v.sky for v in train], preset.points, seed)
     meta = manifest(name, size, seed, len(views))
     meta["depth_range"] = [float(min(v.depth.min() for v in views)), float(max(v.depth.max() for v in views))]
     meta["sparse_points"] = int(len(points))
@@ -227,7 +227,7 @@ def write_builtin(name: str, out: str | Path, size: str = "tiny", seed: int = 0,
     """Render a built-in scene and write it as a COLMAP scene folder, atomically.
 
     The folder holds what :func:`nimbus.data.io.write_scene_into` writes (``images/``,
-    ``sparse/0``, ``depths/<stem>.npy``, ``masks/<stem>.png``, ``train_list.txt``,
+    ``sparse/0``, ``depths/<stem>.npy``, ``sky/<stem>.png``, ``train_list.txt``,
     ``test_list.txt``) plus ``manifest.json``; it appears only when complete.  A
     non-empty ``out`` is refused unless ``overwrite``.  ``progress`` and ``workers`` are as
     in :func:`render_builtin`.

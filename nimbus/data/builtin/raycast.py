@@ -425,13 +425,13 @@ class RenderedView:
     image : ndarray, shape (H, W, 3), float32 in [0, 1]
     depth : ndarray, shape (H, W), float32
         z-depth of the pixel-centre ray's hit (finite everywhere: the backdrop is a surface).
-    mask : ndarray, shape (H, W), bool
+    sky : ndarray, shape (H, W), bool
         True where the pixel-centre ray hits a backdrop material (sky, distant hills).
     """
 
     image: np.ndarray
     depth: np.ndarray
-    mask: np.ndarray
+    sky: np.ndarray
 
 
 def shade(world: World, origin: np.ndarray, dirs: np.ndarray, t: np.ndarray, index: np.ndarray) -> np.ndarray:
