@@ -27,6 +27,14 @@ SSIM protocols (11-tap Gaussian window, sigma 1.5, C1 = 0.01^2, C2 = 0.03^2 ever
 
 The protocols differ by ~0.01 on real images, more than the margins between methods,
 so every table must name the one it used.
+
+Validity masks (``mask``: bool ``(H, W)`` or ``(B, H, W)``, True = the pixel counts; a
+view's ``masks/`` file): PSNR is the MSE over the valid pixels; SSIM is the map of both
+images with their invalid pixels set to 0, averaged over the valid pixels (kept by the
+protocol's crop), so for a rectangular mask it equals the SSIM of that rectangle with the
+3dgs protocol; LPIPS is of whole images after the prediction's invalid pixels are
+replaced by the ground truth's (the peers' practice: both images on the same background;
+the distance is then diluted by the invalid fraction).  See :data:`MASK_PROTOCOL`.
 """
 
 from __future__ import annotations
@@ -96,6 +104,9 @@ SSIM_PROTOCOLS: dict[str, SSIMProtocol] = {
                           "dm_pix.ssim / nerfbaselines: 11-tap Gaussian (sigma 1.5), 'valid' convolution"),
 }
 PSNR_PROTOCOL = "per image on [0, 1] after an 8-bit round trip of both images; mean over views"
+MASK_PROTOCOL = ("valid pixels only: PSNR = MSE over valid pixels; SSIM = map of both images with invalid "
+                 "pixels set to 0, mean over valid pixels; LPIPS = whole image after the prediction's invalid "
+                 "pixels are replaced by the ground truth's")
 
 
 # --- input handling ----------------------------------------------------------------------
@@ -125,8 +136,24 @@ def _result(values: np.ndarray, single: bool):
     return float(values[0]) if single else values
 
 
+def _mask_batch(mask: Any, shape: tuple[int, ...]) -> np.ndarray | None:
+    """``mask`` as a bool (B, H, W) batch for images of (B, H, W, 3) ``shape``, or None."""
+    if mask is None:
+        return None
+    m = np.asarray(mask)
+    if m.ndim == 2:
+        m = m[None]
+    if m.shape != shape[:3]:
+        raise NimbusError(f"mask shape {np.shape(mask)} does not match the images' {shape[:3]} (B, H, W); give "
+                          "one bool (H, W) mask of the image's size per image")
+    m = m.astype(bool)
+    if not m.reshape(len(m), -1).any(axis=1).all():
+        raise NimbusError("a mask keeps no pixel (True / non-zero = the pixel counts); such a view cannot be scored")
+    return m
+
+
 # --- PSNR --------------------------------------------------------------------------------
-def psnr(pred: Any, gt: Any, quantize: bool = True):
+def psnr(pred: Any, gt: Any, quantize: bool = True, mask: Any = None):
     """Peak signal-to-noise ratio in dB, per image (peak 1).
 
     Parameters
@@ -134,6 +161,8 @@ def psnr(pred: Any, gt: Any, quantize: bool = True):
     pred, gt : array, (H, W, 3) or (B, H, W, 3), float in [0, 1]
     quantize : bool
         Apply the 8-bit round trip to both first (the benchmark's convention).
+    mask : array of bool, (H, W) or (B, H, W), optional
+        Validity mask: the MSE is over the True pixels only.
 
     Returns
     -------
@@ -141,7 +170,13 @@ def psnr(pred: Any, gt: Any, quantize: bool = True):
         ``-10 log10(MSE)``; typically 10-50 dB, higher is better; ``inf`` for identical images.
     """
     a, b, single = _pair(pred, gt, quantize)
-    mse = ((a.astype(np.float64) - b) ** 2).reshape(len(a), -1).mean(axis=1)
+    m = _mask_batch(mask, a.shape)
+    err = ((a.astype(np.float64) - b) ** 2).reshape(len(a), -1, 3)
+    if m is None:
+        mse = err.reshape(len(a), -1).mean(axis=1)
+    else:
+        w = m.reshape(len(a), -1, 1)
+        mse = (err * w).sum(axis=(1, 2)) / (w.sum(axis=(1, 2)) * 3)
     with np.errstate(divide="ignore"):
         return _result(-10.0 * np.log10(mse), single)
 
@@ -173,9 +208,11 @@ def _filter(maps: np.ndarray, valid: bool) -> np.ndarray:
     return out
 
 
-def _ssim_batch(a: np.ndarray, b: np.ndarray, proto: SSIMProtocol) -> np.ndarray:
-    """Mean SSIM of each pair of a (B, H, W, C) float32 batch -> (B,) float64."""
+def _ssim_batch(a: np.ndarray, b: np.ndarray, proto: SSIMProtocol, mask: np.ndarray | None = None) -> np.ndarray:
+    """Mean SSIM of each pair of a (B, H, W, C) float32 batch -> (B,) float64 (over ``mask``'s valid pixels)."""
     n, h, w, c = a.shape
+    if mask is not None:  # invalid pixels enter no window: zero in both images, like padding at a crop's edge
+        a, b = a * mask[..., None], b * mask[..., None]
     x = a.astype(np.float64).transpose(0, 3, 1, 2).reshape(n * c, h, w)
     y = b.astype(np.float64).transpose(0, 3, 1, 2).reshape(n * c, h, w)
     valid = proto.padding == "valid"
@@ -192,10 +229,18 @@ def _ssim_batch(a: np.ndarray, b: np.ndarray, proto: SSIMProtocol) -> np.ndarray
     if proto.crop:
         k = proto.crop
         m = m[:, k:-k, k:-k]
-    return m.reshape(n, -1).mean(axis=1)
+    if mask is None:
+        return m.reshape(n, -1).mean(axis=1)
+    k = (SSIM_WINDOW // 2 if valid else 0) + proto.crop  # the map's border cut, on the mask
+    wts = mask[:, k:h - k, k:w - k].astype(np.float64)
+    counts = wts.reshape(n, -1).sum(axis=1)
+    if not counts.all():
+        raise NimbusError(f"a mask keeps no pixel inside the {k} px border that the {proto.name} SSIM protocol "
+                          "drops; score with --ssim 3dgs or use a larger valid region")
+    return (m.reshape(n, c, *wts.shape[1:]) * wts[:, None]).reshape(n, -1).sum(axis=1) / (counts * c)
 
 
-def ssim(pred: Any, gt: Any, protocol: str = "3dgs", quantize: bool = True):
+def ssim(pred: Any, gt: Any, protocol: str = "3dgs", quantize: bool = True, mask: Any = None):
     """Structural similarity, per image, with a named protocol.
 
     Parameters
@@ -206,6 +251,9 @@ def ssim(pred: Any, gt: Any, protocol: str = "3dgs", quantize: bool = True):
         See the module docstring; ``"3dgs"`` is the paper's.
     quantize : bool
         Apply the 8-bit round trip to both first.
+    mask : array of bool, (H, W) or (B, H, W), optional
+        Validity mask: the map of both images with the False pixels set to 0, averaged over the
+        True pixels (see the module docstring).
 
     Returns
     -------
@@ -215,7 +263,9 @@ def ssim(pred: Any, gt: Any, protocol: str = "3dgs", quantize: bool = True):
     proto = get_ssim_protocol(protocol)
     a, b, single = _pair(pred, gt, quantize)
     _check_ssim_size(a.shape)
-    out = np.concatenate([_ssim_batch(a[s:s + SSIM_BATCH], b[s:s + SSIM_BATCH], proto)
+    m = _mask_batch(mask, a.shape)
+    out = np.concatenate([_ssim_batch(a[s:s + SSIM_BATCH], b[s:s + SSIM_BATCH], proto,
+                                      None if m is None else m[s:s + SSIM_BATCH])
                           for s in range(0, len(a), SSIM_BATCH)])
     return _result(out, single)
 
@@ -427,26 +477,42 @@ class Scorer:
             "quantize_8bit": self.quantize,
         }
 
-    def __call__(self, preds: Sequence[np.ndarray], gts: Sequence[np.ndarray]) -> dict[str, list]:
+    def __call__(self, preds: Sequence[np.ndarray], gts: Sequence[np.ndarray],
+                 masks: Sequence[np.ndarray | None] | None = None) -> dict[str, list]:
         """Per-pair values of a sequence of pairs (images may differ in size between pairs).
+
+        ``masks``: per pair, a bool (H, W) validity mask or None (every pixel counts); the
+        metrics then follow :data:`MASK_PROTOCOL`.
 
         Returns
         -------
         dict
             ``{"psnr": [...], "ssim": [...], "lpips": [...] (None entries when not computed),
-            "nonfinite": [...]}`` (``nonfinite``: count of NaN / inf values in each prediction).
+            "nonfinite": [...], "valid_fraction": [...]}`` (``nonfinite``: count of NaN / inf
+            values in each prediction; ``valid_fraction``: share of valid pixels, None without a mask).
         """
         if len(preds) != len(gts):
             raise NimbusError(f"{len(preds)} predictions but {len(gts)} ground-truth images")
-        out: dict[str, list] = {"psnr": [], "ssim": [], "lpips": [], "nonfinite": []}
+        if masks is not None and len(masks) != len(preds):
+            raise NimbusError(f"{len(masks)} masks for {len(preds)} image pairs")
+        out: dict[str, list] = {"psnr": [], "ssim": [], "lpips": [], "nonfinite": [], "valid_fraction": []}
         for group in _same_shape_runs([np.shape(p) for p in preds], [np.shape(g) for g in gts]):
             p = np.stack([np.asarray(preds[i], np.float32) for i in group])
             g = np.stack([np.asarray(gts[i], np.float32) for i in group])
             out["nonfinite"] += [int(n) for n in (~np.isfinite(p)).reshape(len(p), -1).sum(axis=1)]
             if self.quantize:  # once here, not in each metric
                 p, g = quantize_8bit(p), quantize_8bit(g)
-            out["psnr"] += psnr(p, g, quantize=False).tolist()
-            out["ssim"] += ssim(p, g, self.ssim_protocol, quantize=False).tolist()
+            given = [None if masks is None else masks[i] for i in group]
+            m = None
+            if any(x is not None for x in given):  # views without a mask count every pixel
+                m = _mask_batch(np.stack([np.ones(p.shape[1:3], bool) if x is None else np.asarray(x)
+                                          for x in given]), p.shape)
+            out["valid_fraction"] += [None if x is None else float(mi.mean()) for x, mi in
+                                      zip(given, m if m is not None else [None] * len(group))]
+            out["psnr"] += psnr(p, g, quantize=False, mask=m).tolist()
+            out["ssim"] += ssim(p, g, self.ssim_protocol, quantize=False, mask=m).tolist()
+            if m is not None:  # the same background in both: the ground truth's
+                p = np.where(m[..., None], p, g)
             out["lpips"] += (self.lpips(p, g, quantize=False).tolist() if self.lpips is not None
                              else [None] * len(group))
         return out
@@ -510,6 +576,11 @@ def summarize(names: Sequence[str], values: dict[str, list], scorer: Scorer) -> 
     """Per-view records, means, protocols and notes from :class:`Scorer` output (see :func:`score_images`)."""
     per_view = [{"name": n, "psnr": values["psnr"][i], "ssim": values["ssim"][i], "lpips": values["lpips"][i]}
                 for i, n in enumerate(names)]
+    fractions = values.get("valid_fraction") or [None] * len(names)
+    masked = [f for f in fractions if f is not None]
+    for rec, f in zip(per_view, fractions):
+        if f is not None:
+            rec.update(masked=True, valid_fraction=f)
     notes = []
     if scorer.lpips_missing:
         notes.append(scorer.lpips_missing)
@@ -520,10 +591,17 @@ def summarize(names: Sequence[str], values: dict[str, list], scorer: Scorer) -> 
     inf = [n for n, v in zip(names, values["psnr"]) if math.isinf(v)]
     if inf:
         notes.append(f"PSNR is infinite (prediction equals ground truth) for {len(inf)} view(s): {', '.join(inf[:5])}")
+    protocol = scorer.protocol
+    if masked:
+        protocol["masks"] = MASK_PROTOCOL
+        notes.append(f"{len(masked)} of {len(names)} view(s) have a validity mask and were scored over their valid "
+                     f"pixels only (mean valid fraction {np.mean(masked):.3f})")
     return {
         "per_view": per_view,
         "mean": {k: _mean(values[k]) for k in ("psnr", "ssim", "lpips")},
-        "protocol": scorer.protocol,
+        "masked": bool(masked),
+        "masks": ({"views": len(masked), "mean_valid_fraction": float(np.mean(masked))} if masked else None),
+        "protocol": protocol,
         "notes": notes,
         "lpips_missing": scorer.lpips_missing,
         "setup_command": SETUP_COMMAND if scorer.lpips_missing else None,

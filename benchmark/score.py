@@ -12,6 +12,10 @@ benchmark figure over a subset of the views would not be comparable.
 The results file holds per-view values, the sha256 of every prediction and ground
 truth file, the protocols and the software versions, so a figure can be traced back to
 the exact images it came from.
+
+A view with a validity mask (``masks/``, ``mask_path``; 0 = ignore the pixel) is scored
+over its valid pixels only (:data:`benchmark.metrics.MASK_PROTOCOL`); the results say so
+(``masked``, ``masks``, per view ``valid_fraction``).
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ from nimbus.data import load_scene
 from nimbus.data.images import read_image
 from nimbus.data.io import format_names, image_size, list_images
 from nimbus.errors import NimbusError
+from nimbus.train.trainer import view_mask
 from nimbus.utils.fs import atomic_write_json, check_output_dir, refuse_overlap, sha256_file
 
 FORMAT = "nimbus-bench-score/1"
@@ -179,7 +184,9 @@ def score_renders(pred_dir: str | Path, scene_dir: str | Path, split: str = "tes
     values: dict[str, list] = {}
     for s in range(0, len(views), SCORE_CHUNK):
         chunk = slice(s, s + SCORE_CHUNK)
-        part = scorer([read_image(p) for p in preds[chunk]], [read_image(g) for g in gts[chunk]])
+        # A view's validity mask (masks/, mask_path) limits its scores to the valid pixels.
+        part = scorer([read_image(p) for p in preds[chunk]], [read_image(g) for g in gts[chunk]],
+                      [view_mask(v) for v in views[chunk]])
         for k, v in part.items():
             values.setdefault(k, []).extend(v)
         if progress is not None:

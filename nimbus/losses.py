@@ -52,21 +52,68 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 
     return num / den
 
 
-def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Mean SSIM with the 3DGS training protocol (11x11 Gaussian window, sigma 1.5, zero padding)."""
-    return ssim_map(a, b).mean()
+def masked_pair(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """Both images with their invalid pixels set to 0, and the mask as a float ``(H, W, 1)`` weight.
+
+    Zeroing both images (rather than weighting the residual) keeps the colours of the
+    invalid pixels out of every SSIM window that reaches into them: the map then sees
+    exactly the zero padding it would see at the edge of a crop, so for a rectangular
+    mask the masked losses and metrics equal the plain ones on that rectangle.  The
+    gradient with respect to an invalid pixel of ``a`` is 0.  ``mask`` None: the
+    images are returned as they are (no extra work for views without masks).
+    """
+    if mask is None:
+        return a, b, None
+    if mask.shape != a.shape[-3:-1]:
+        raise ValueError(f"mask shape {tuple(mask.shape)} does not match the image's {tuple(a.shape[-3:-1])}")
+    w = mask.to(a.dtype)[..., None]
+    return a * w, b * w, w
 
 
-def l1(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    return (a - b).abs().mean()
+def ssim(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean SSIM with the 3DGS training protocol (11x11 Gaussian window, sigma 1.5, zero padding).
+
+    ``mask`` (bool ``(H, W)``, True = the pixel counts): the SSIM map of the images with the
+    invalid pixels zeroed (:func:`masked_pair`), averaged over the valid pixels only.
+    """
+    a, b, w = masked_pair(a, b, mask)
+    m = ssim_map(a, b)
+    if w is None:
+        return m.mean()
+    return (m * w[..., 0]).sum() / (w.sum() * m.shape[1])
 
 
-def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_dssim: float) -> torch.Tensor:
-    """(1 - lambda) L1 + lambda (1 - SSIM), the 3DGS loss (lambda 0.2; NimbusGS uses 0.4)."""
-    return (1.0 - lambda_dssim) * l1(pred, gt) + lambda_dssim * (1.0 - ssim(pred, gt))
+def l1(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean absolute difference, over the valid pixels when ``mask`` (bool ``(H, W)``) is given."""
+    if mask is None:
+        return (a - b).abs().mean()
+    a, b, w = masked_pair(a, b, mask)
+    return (a - b).abs().sum() / (w.sum() * a.shape[-1])
 
 
-def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    """PSNR in dB for images in [0, 1] (no quantisation; the benchmark's PSNR quantises to 8 bits first)."""
-    mse = float(((a.detach().float() - b.detach().float()) ** 2).mean())
+def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_dssim: float,
+                     mask: torch.Tensor | None = None) -> torch.Tensor:
+    """(1 - lambda) L1 + lambda (1 - SSIM), the 3DGS loss (lambda 0.2; NimbusGS uses 0.4).
+
+    ``pred``, ``gt``: ``(H, W, 3)``.  ``mask``: bool ``(H, W)``, True where the pixel counts
+    (a view's validity mask); both terms are then means over the valid pixels and
+    neither the target's nor the render's colours in invalid pixels reach the loss or its
+    gradient (see :func:`masked_pair`).  The caller guarantees at least one valid pixel.
+    """
+    return (1.0 - lambda_dssim) * l1(pred, gt, mask) + lambda_dssim * (1.0 - ssim(pred, gt, mask))
+
+
+def psnr(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None) -> float:
+    """PSNR in dB for images in [0, 1] (no quantisation; the benchmark's PSNR quantises to 8 bits first).
+
+    ``mask`` (bool ``(H, W)``): the mean squared error over the valid pixels only.
+    """
+    a, b = a.detach().float(), b.detach().float()
+    err = (a - b) ** 2
+    if mask is None:
+        mse = float(err.mean())
+    else:
+        w = mask.to(err.dtype)[..., None]
+        mse = float((err * w).sum() / (w.sum() * err.shape[-1]))
     return float("inf") if mse == 0 else -10.0 * torch.log10(torch.tensor(mse)).item()

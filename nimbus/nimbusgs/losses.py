@@ -47,6 +47,10 @@ def dcp_loss(clean: Tensor, patch: int, temperature: float, form: str = "l1", ma
     return dark * dark if form == "squared" else dark
 
 
-def stage_loss(pred: Tensor, target: Tensor, lambda_r: float) -> Tensor:
-    """(1 - lambda_r) ||I_in - pred||_1 + lambda_r (1 - SSIM(I_in, pred)) (paper Eqs. 11 and 14)."""
-    return photometric_loss(pred, target, lambda_r)
+def stage_loss(pred: Tensor, target: Tensor, lambda_r: float, mask: Tensor | None = None) -> Tensor:
+    """(1 - lambda_r) ||I_in - pred||_1 + lambda_r (1 - SSIM(I_in, pred)) (paper Eqs. 11 and 14).
+
+    ``mask`` (bool ``[H, W]``): the view's validity mask; both terms are means over its valid
+    pixels (:func:`nimbus.losses.photometric_loss`).
+    """
+    return photometric_loss(pred, target, lambda_r, mask)

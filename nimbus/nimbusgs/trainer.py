@@ -305,7 +305,7 @@ class NimbusTrainer(GaussianTrainer):
                     self.store.set(view_index, self._residual(view_index, pred.detach()), it)
                     self.counts["lazy_refreshes"] += 1
             pred = pred + self.store.get(view_index)
-        loss = stage_loss(pred, gt, c.lambda_dssim)
+        loss = stage_loss(pred, gt, c.lambda_dssim, self.train_masks[view_index])
         if self.use_csm:
             if c.lambda_dcp > 0 and (self.stage == 1 or c.dcp_stage2):
                 mask = self._dcp_mask(view_index, render) if c.dcp_surface_only else None
@@ -327,6 +327,8 @@ class NimbusTrainer(GaussianTrainer):
         pred, gt = self._last
         meta = render["meta"]
         error = (pred - gt).abs().sum(dim=-1)
+        if self.train_masks[view_index] is not None:  # ignored pixels must not steer the rescaling
+            error = error * self.train_masks[view_index]
         means2d = meta["means2d"].detach().reshape(-1, 2)
         w, info = ggs_weights(meta["depths"], meta["radii"], means2d, error, meta["visible"], self.ggs)
         scale_gradients(self.params.tensors, w)

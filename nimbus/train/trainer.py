@@ -101,20 +101,64 @@ def quantize_8bit(img: torch.Tensor) -> torch.Tensor:
     return torch.round(img.clamp(0, 1) * 255.0) / 255.0
 
 
+def view_mask(view: View) -> np.ndarray | None:
+    """The view's validity mask, bool ``(H, W)`` (True = the pixel counts), or None when every pixel counts.
+
+    Checked here, at the boundary of training and scoring, for in-memory masks too: a mask
+    of another size than the camera, or one that keeps no pixel (most likely the inverse
+    convention, 0 = keep), is a :class:`NimbusError`, since training on it would silently
+    learn nothing and scoring it would divide by zero.
+    """
+    mask = view.load_mask()
+    if mask is None:
+        return None
+    mask = np.asarray(mask)
+    size = (view.camera.height, view.camera.width)
+    if mask.shape != size:
+        raise NimbusError(f"the mask of view {view.name} is {'x'.join(map(str, mask.shape[::-1]))} but its camera "
+                          f"is {size[1]}x{size[0]}; give a mask of the image's size (masks/<name>.png)")
+    mask = mask.astype(bool)
+    if not mask.any():
+        raise NimbusError(f"the mask of view {view.name} keeps no pixel; masks mark the pixels to use with a "
+                          "non-zero value and the pixels to ignore with 0 (invert it if it is the other way "
+                          "round), or remove the view")
+    return mask
+
+
+def downscale_mask(mask: np.ndarray, height: int, width: int) -> np.ndarray:
+    """A validity mask shrunk to ``height`` x ``width`` with the image's area averaging.
+
+    A small pixel is valid only when every pixel it averages is valid: the shrunk image
+    mixes the colours of its whole block, so a block that holds a single ignored pixel
+    (a moving person, an undistortion border) would leak that pixel's colour into the loss.
+    """
+    m = torch.from_numpy(mask.astype(np.float32))[None, None]
+    small = torch.nn.functional.interpolate(m, size=(height, width), mode="area")[0, 0]
+    return (small >= 1.0 - 1e-6).numpy()
+
+
 def downscaled_view(view: View, factor: int) -> View:
     """``view`` with its image shrunk ``factor`` times (area average) and its camera scaled to the new size.
 
-    The image is held in memory (``image``); depth and mask are dropped, since their
-    files keep the full size.  ``factor`` 1 returns ``view`` itself.
+    The image and the validity mask (:func:`downscale_mask`) are held in memory; depth and
+    the sky mask are dropped, since their files keep the full size.  ``factor`` 1 returns
+    ``view`` itself.
     """
     if factor == 1:
         return view
     img = torch.from_numpy(view.load_image()).permute(2, 0, 1)[None]  # [1, 3, H, W]
     h, w = max(img.shape[2] // factor, 1), max(img.shape[3] // factor, 1)
     small = torch.nn.functional.interpolate(img, size=(h, w), mode="area")[0].permute(1, 2, 0)
+    mask = view_mask(view)
+    if mask is not None:
+        mask = downscale_mask(mask, h, w)
+        if not mask.any():
+            raise NimbusError(f"the mask of view {view.name} keeps no pixel once shrunk {factor} times "
+                              "(train_downscale): a small pixel counts only when its whole block is valid; "
+                              "lower train_downscale or remove the view")
     return dataclasses.replace(view, camera=view.camera.scaled(1.0 / factor, width=w, height=h),
                                image=small.contiguous().numpy(), image_path=None, depth=None, depth_path=None,
-                               mask=None, mask_path=None, sky=None, sky_path=None)
+                               mask=mask, mask_path=None, sky=None, sky_path=None)
 
 
 class GaussianTrainer:
@@ -161,6 +205,10 @@ class GaussianTrainer:
         self.gen = torch.Generator().manual_seed(self.seed)
         self.train_views: list[View] = [downscaled_view(v, config.train_downscale) for v in scene.train_views]
         self.train_images = [torch.from_numpy(v.load_image()).to(self.device) for v in self.train_views]
+        #: Per training view, its validity mask (bool [H, W] on the device) or None: views without a
+        #: mask take the plain loss, with no all-ones tensor on the hot path.
+        self.train_masks: list[torch.Tensor | None] = [
+            None if m is None else torch.from_numpy(m).to(self.device) for m in map(view_mask, self.train_views)]
         init = init_from_scene(scene, GaussianInitConfig(sh_degree=config.sh_degree, init_opacity=config.init_opacity,
                                                          random_points=config.init_random_points, seed=self.seed))
         self.params = GaussianParams(self._init_tensors(init), self._learning_rates(), config.adam_eps)
@@ -184,8 +232,11 @@ class GaussianTrainer:
         """Restore what :meth:`extra_state` saved."""
 
     def compute_loss(self, view_index: int, render: dict[str, torch.Tensor], gt: torch.Tensor) -> torch.Tensor:
-        """The training loss for one view; ``render`` has ``rgb``, ``depth``, ``alpha`` and ``meta``."""
-        return photometric_loss(render["rgb"], gt, self.cfg.lambda_dssim)
+        """The training loss for one view; ``render`` has ``rgb``, ``depth``, ``alpha`` and ``meta``.
+
+        Pixels outside the view's validity mask (``self.train_masks``) take no part.
+        """
+        return photometric_loss(render["rgb"], gt, self.cfg.lambda_dssim, self.train_masks[view_index])
 
     def training_prediction(self, render: dict) -> torch.Tensor:
         """What the last loss compared with the training image (the progress bar's PSNR)."""
@@ -297,7 +348,7 @@ class GaussianTrainer:
                 self.after_step(it)
                 with torch.no_grad():
                     lv = float(loss)
-                    pv = psnr(self.training_prediction(render), gt)
+                    pv = psnr(self.training_prediction(render), gt, self.train_masks[vi])
                 loss_ema = lv if loss_ema is None else 0.9 * loss_ema + 0.1 * lv
                 psnr_ema = pv if psnr_ema is None else 0.9 * psnr_ema + 0.1 * pv
                 if it % c.log_interval == 0 or it == c.iterations:
@@ -472,11 +523,17 @@ class GaussianTrainer:
             if gt_image.shape != tuple(pred.shape):  # a downscaled load (images_<d>/): clean/ is full size
                 gt_image = cv2.resize(gt_image, (pred.shape[1], pred.shape[0]), interpolation=cv2.INTER_AREA)
             gt = quantize_8bit(torch.from_numpy(gt_image).to(pred))
-            per_view[view.name] = {"psnr": psnr(pred, gt), "ssim": float(ssim(pred, gt))}
+            # Scored over the view's valid pixels only, as nimbus-bench score does.
+            mask = view_mask(view)
+            mask_t = None if mask is None else torch.from_numpy(mask).to(pred.device)
+            per_view[view.name] = {"psnr": psnr(pred, gt, mask_t), "ssim": float(ssim(pred, gt, mask_t))}
+            if mask is not None:
+                per_view[view.name]["valid_fraction"] = round(float(mask.mean()), 6)
         mean = {k: float(np.mean([v[k] for v in per_view.values()])) for k in ("psnr", "ssim")}
         fps = len(render_times) / max(sum(render_times), 1e-9)
+        masked = sum("valid_fraction" in v for v in per_view.values())
         return {"split": split, "reference": reference, "per_view": per_view, "render_fps": fps,
-                "visible_views": seen, **mean}
+                "visible_views": seen, "masked_views": masked, **mean}
 
     def _clean_path(self, view: View) -> Path | None:
         """``SCENE/clean/<name>`` of a dataset written by ``nimbus-synth degrade`` (its ``images/`` are the
@@ -503,6 +560,10 @@ class GaussianTrainer:
             "peak_memory_mb": round(peak_memory_mb(self.device), 1), "num_gaussians": len(self.params),
             "eval_split": ev["split"], "eval_reference": ev["reference"], "psnr": ev["psnr"], "ssim": ev["ssim"],
             "render_fps": ev["render_fps"],
+            # Validity masks: test views scored over their valid pixels only, training views whose
+            # loss ignored masked pixels (per_view[name]["valid_fraction"] where a test view has one).
+            "masked": ev["masked_views"] > 0, "eval_masked_views": ev["masked_views"],
+            "train_masked_views": sum(m is not None for m in self.train_masks),
             "per_view": ev["per_view"], "device": str(self.device), "nimbus_version": nimbus.__version__,
             "versions": software_versions(), **self.extra_results(),
         }
