@@ -64,6 +64,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
+from nimbus.cli_util import pick_by_name
 from nimbus.errors import NimbusError
 
 OUTCOMES = ("finished", "clear error", "unclear error", "crash")
@@ -551,15 +552,7 @@ CASES: tuple[HostileCase, ...] = (
 
 def get_cases(spec: str | None = None) -> list[HostileCase]:
     """Cases by comma-separated name (None or ``all``: every case), in :data:`CASES` order."""
-    if spec is None or spec.strip() in ("", "all"):
-        return list(CASES)
-    by_name = {c.name: c for c in CASES}
-    names = [n.strip() for n in spec.split(",") if n.strip()]
-    unknown = [n for n in names if n not in by_name]
-    if unknown:
-        raise NimbusError(f"unknown hostile case(s) {', '.join(unknown)}; choose from {', '.join(by_name)} "
-                          "(nimbus-bench hostile --list describes them)")
-    return [c for c in CASES if c.name in names]
+    return pick_by_name(CASES, spec, "hostile case", "nimbus-bench hostile --list")
 
 
 # --- running a child ---------------------------------------------------------------------------

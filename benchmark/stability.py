@@ -50,6 +50,7 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 
 from benchmark.grid import SCENE_SEED, SYNTH_PROTOCOL, SYNTH_SEED, make_config
+from nimbus.cli_util import pick_by_name
 from nimbus.errors import NimbusError
 
 OUTCOMES = ("finished", "clear error", "crash")
@@ -180,15 +181,7 @@ CASES: tuple[StabilityCase, ...] = (
 
 def get_cases(spec: str | None = None) -> list[StabilityCase]:
     """Cases by comma-separated name (None or ``all``: every case), in :data:`CASES` order."""
-    if spec is None or spec.strip() in ("", "all"):
-        return list(CASES)
-    by_name = {c.name: c for c in CASES}
-    names = [n.strip() for n in spec.split(",") if n.strip()]
-    unknown = [n for n in names if n not in by_name]
-    if unknown:
-        raise NimbusError(f"unknown stability case(s) {', '.join(unknown)}; choose from {', '.join(by_name)} "
-                          "(nimbus-bench stability --list describes them)")
-    return [c for c in CASES if c.name in names]
+    return pick_by_name(CASES, spec, "stability case", "nimbus-bench stability --list")
 
 
 # --- options and rows --------------------------------------------------------------------------

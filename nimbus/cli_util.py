@@ -30,6 +30,23 @@ def seed_arg(text: str) -> int:
                                          "smaller non-negative seed") from None
 
 
+def pick_by_name(items: Sequence, spec: str | None, what: str, list_command: str) -> list:
+    """The ``items`` (each with a ``name``) named in a comma-separated ``spec``, in ``items`` order.
+
+    None, ``""`` or ``all`` selects every item.  An unknown name is a :class:`NimbusError` that lists
+    the valid names and the command (``list_command``) that describes them.
+    """
+    if spec is None or spec.strip() in ("", "all"):
+        return list(items)
+    by_name = {item.name: item for item in items}
+    names = [n.strip() for n in spec.split(",") if n.strip()]
+    unknown = [n for n in names if n not in by_name]
+    if unknown:
+        raise NimbusError(f"unknown {what}(s) {', '.join(unknown)}; choose from {', '.join(by_name)} "
+                          f"({list_command} describes them)")
+    return [item for item in items if item.name in names]
+
+
 def run_cli(main: Callable[[Sequence[str] | None], int], argv: Sequence[str] | None = None) -> int:
     """Run ``main``; a :class:`NimbusError` becomes one ``error: ...`` line and exit code 2."""
     try:
