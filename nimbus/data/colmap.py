@@ -15,10 +15,14 @@ structure is checked against its file sizes before pycolmap reads it
 (:func:`check_binary_model`), every camera value and pose is validated
 (:class:`nimbus.data.camera.Camera`) and the sparse points must be finite.
 
-Camera models: ``SIMPLE_PINHOLE`` and ``PINHOLE`` are read as they are;
-``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV`` and ``FULL_OPENCV`` only when all their
-distortion parameters are zero.  Anything else is refused with the command that
-undistorts the scene (Nimbus renders pinhole cameras only).
+Camera models: ``SIMPLE_PINHOLE`` and ``PINHOLE`` are read as they are, and so are
+``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV`` and ``FULL_OPENCV`` when all their distortion
+parameters are zero.  With distortion, these and the fisheye models
+``SIMPLE_RADIAL_FISHEYE``, ``RADIAL_FISHEYE``, ``OPENCV_FISHEYE``, ``SIMPLE_FISHEYE`` and
+``FISHEYE`` are undistorted on load into pinhole views whose files live in the cache
+(:mod:`nimbus.data.undistort`; :data:`COLMAP_LENSES` maps each onto OpenCV's models).
+The other models (``FOV``, the thin-prism fisheyes, ``DIVISION``, ``EUCM``,
+``EQUIRECTANGULAR``) are refused with the command that undistorts the scene.
 
 Layout written
 --------------
@@ -52,14 +56,27 @@ from nimbus.data.io import (
     write_view_files,
 )
 from nimbus.data.scene import Scene, View, llff_test_names, read_split_lists, scene_file
+from nimbus.data.undistort import Lens, undistort_views
 from nimbus.errors import NimbusError
 
 log = logging.getLogger(__name__)
 
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
-# Perspective models that reduce to a pinhole when every distortion parameter is zero.
-# (Fisheye models do not: zero coefficients still mean an equidistant projection.)
-ZERO_DISTORTION_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+# COLMAP model -> (fisheye, the index in the model's params of each OpenCV distortion coefficient,
+# None = 0).  COLMAP's perspective models are OpenCV's (k1, k2, p1, p2[, k3, k4, k5, k6]) with terms
+# left out; its fisheye models are OpenCV's equidistant (k1, k2, k3, k4) one, so a fisheye with zero
+# coefficients still needs resampling.  Checked against pycolmap's img_from_cam in tests/test_undistort.py.
+COLMAP_LENSES: dict[str, tuple[bool, tuple[int | None, ...]]] = {
+    "SIMPLE_RADIAL": (False, (3, None, None, None)),
+    "RADIAL": (False, (3, 4, None, None)),
+    "OPENCV": (False, (4, 5, 6, 7)),
+    "FULL_OPENCV": (False, (4, 5, 6, 7, 8, 9, 10, 11)),
+    "SIMPLE_RADIAL_FISHEYE": (True, (3, None, None, None)),
+    "RADIAL_FISHEYE": (True, (3, 4, None, None)),
+    "OPENCV_FISHEYE": (True, (4, 5, 6, 7)),
+    "SIMPLE_FISHEYE": (True, (None, None, None, None)),
+    "FISHEYE": (True, (None, None, None, None)),
+}
 
 
 def find_sparse_dir(root: str | os.PathLike) -> Path | None:
@@ -281,6 +298,8 @@ def _text_line_problem(kind: str, tokens: list[str]) -> str | None:
             return "expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS..."
         if not all(_is_number(t) for t in tokens[4:]):
             return "camera parameters must be numbers"
+        if not all(np.isfinite(float(t)) for t in tokens[4:]):
+            return "camera parameters must be finite (no nan or inf)"
         model = getattr(pycolmap.CameraModelId, tokens[1], None)
         if model is None:
             return f"unknown camera model {tokens[1]!r}"
@@ -328,35 +347,56 @@ def locate_text_model_error(sparse_dir: str | os.PathLike) -> str | None:
     return None
 
 
-def camera_from_colmap(cam: pycolmap.Camera, cam_from_world: np.ndarray, sparse_dir: Path | str = "",
-                       image_name: str | None = None) -> Camera:
-    """A Nimbus camera from a pycolmap camera and a 3x4 world-to-camera matrix.
+def colmap_lens(cam: pycolmap.Camera, sparse_dir: Path | str = "") -> Lens | None:
+    """The lens distortion of a pycolmap camera (None for a pinhole model or zero distortion).
 
-    Raises NimbusError for a distorted or non-perspective model, saying how to undistort, and
-    for an invalid camera (non-finite or non-positive intrinsics, a size of 0, a pose that is
-    not finite or not a rotation), naming the model folder, the camera and ``image_name``.
+    Raises NimbusError naming the camera and the model folder for a non-finite coefficient and
+    for a model Nimbus cannot undistort (with the COLMAP command that does).
     """
     model = cam.model_name
-    params = np.asarray(cam.params, dtype=np.float64)
-    if model not in PINHOLE_MODELS:
-        extra = params[list(cam.extra_params_idxs())]
-        if model not in ZERO_DISTORTION_MODELS or np.any(extra != 0):
-            root = Path(sparse_dir).parent.parent if Path(sparse_dir).name == "0" else Path(sparse_dir).parent
-            raise NimbusError(
-                f"camera {cam.camera_id} in {sparse_dir} uses the {model} model with lens distortion "
-                f"(params {params.tolist()}); Nimbus needs undistorted pinhole images. Undistort the scene first: "
-                f"`colmap image_undistorter --image_path {root}/images --input_path {sparse_dir} "
-                f"--output_path {root}_undistorted` (or in Python: pycolmap.undistort_images("
-                f"'{root}_undistorted', '{sparse_dir}', '{root}/images')), then load {root}_undistorted"
-            )
+    if model in PINHOLE_MODELS:
+        return None
+    if model not in COLMAP_LENSES:
+        root = Path(sparse_dir).parent.parent if Path(sparse_dir).name == "0" else Path(sparse_dir).parent
+        raise NimbusError(
+            f"camera {cam.camera_id} in {sparse_dir} uses the {model} camera model, which Nimbus cannot undistort "
+            f"(it undistorts {', '.join(COLMAP_LENSES)}). Undistort the scene with COLMAP first: "
+            f"`colmap image_undistorter --image_path {root}/images --input_path {sparse_dir} "
+            f"--output_path {root}_undistorted` (or in Python: pycolmap.undistort_images("
+            f"'{root}_undistorted', '{sparse_dir}', '{root}/images')), then load {root}_undistorted")
+    fisheye, index = COLMAP_LENSES[model]
+    params = [float(p) for p in cam.params]
+    names = [n.strip() for n in cam.params_info.split(",")]
+    for i in (i for i in index if i is not None):
+        if not np.isfinite(params[i]):
+            raise NimbusError(f"camera {cam.camera_id} in {sparse_dir}: the {model} distortion parameter "
+                              f"{names[i]} must be finite, got {params[i]}; fix the model (or re-export it from "
+                              "COLMAP)")
+    lens = Lens(model, fisheye, tuple(0.0 if i is None else params[i] for i in index))
+    return None if lens.is_identity else lens
+
+
+def camera_from_colmap(cam: pycolmap.Camera, cam_from_world: np.ndarray, sparse_dir: Path | str = "",
+                       image_name: str | None = None) -> tuple[Camera, Lens | None]:
+    """A Nimbus camera and its lens from a pycolmap camera and a 3x4 world-to-camera matrix.
+
+    For a distorted model the camera is the pinhole part (``fx, fy, cx, cy``) and the lens is
+    :func:`colmap_lens` (None without distortion).  Raises NimbusError for a model Nimbus cannot
+    undistort (checked first: pycolmap crashes when asked for the focal length of a model
+    without one, such as ``EQUIRECTANGULAR``) and for an invalid camera (non-finite or
+    non-positive intrinsics, a size of 0, a pose that is not finite or not a rotation), naming
+    the model folder, the camera and ``image_name``.
+    """
+    lens = colmap_lens(cam, sparse_dir)
     m = np.asarray(cam_from_world, dtype=np.float64)
     try:
-        return Camera(cam.width, cam.height, cam.focal_length_x, cam.focal_length_y,
-                      cam.principal_point_x, cam.principal_point_y, m[:3, :3], m[:3, 3])
+        camera = Camera(cam.width, cam.height, cam.focal_length_x, cam.focal_length_y,
+                        cam.principal_point_x, cam.principal_point_y, m[:3, :3], m[:3, 3])
     except NimbusError as e:
         image = f" (image {image_name!r})" if image_name is not None else ""
         raise NimbusError(f"camera {cam.camera_id} in {sparse_dir}{image}: {e}; fix the model (or re-export it "
                           "from COLMAP)") from None
+    return camera, lens
 
 
 def _cam_from_world(image: pycolmap.Image) -> np.ndarray:
@@ -365,7 +405,7 @@ def _cam_from_world(image: pycolmap.Image) -> np.ndarray:
     return np.asarray(pose.matrix())
 
 
-def read_colmap(root: str | os.PathLike, downscale: int = 1) -> Scene:
+def read_colmap(root: str | os.PathLike, downscale: int = 1, cache_dir: str | os.PathLike | None = None) -> Scene:
     """Read a COLMAP scene folder (see the module docstring for the layout and accepted models).
 
     Parameters
@@ -374,18 +414,22 @@ def read_colmap(root: str | os.PathLike, downscale: int = 1) -> Scene:
         Folder with ``images/`` and ``sparse/0``.
     downscale : int
         Use ``images_<downscale>`` and scale the cameras to its images (1 = ``images/``).
+    cache_dir : path, optional
+        Where views of distorted cameras are undistorted to (default: the user cache,
+        :func:`nimbus.data.undistort.default_cache_dir`).
 
     Returns
     -------
     Scene
-        ``source_format="colmap"``; the registered images as views; sparse points
-        and colours; the split from ``train_list.txt`` / ``test_list.txt`` or the LLFF rule.
+        ``source_format="colmap"``; the registered images as views (pinhole; distorted ones
+        undistorted, with ``metadata["undistorted"]``); sparse points and colours; the split
+        from ``train_list.txt`` / ``test_list.txt`` or the LLFF rule.
 
     Raises
     ------
     NimbusError
-        Missing folder or model, empty model, distorted camera, registered images
-        missing on disk (named), images of the wrong size (named).
+        Missing folder or model, empty model, a camera model Nimbus cannot undistort,
+        registered images missing on disk (named), images of the wrong size (named).
         Images on disk but not in the model are only logged as a warning.
     """
     root = Path(root)
@@ -408,11 +452,12 @@ def read_colmap(root: str | os.PathLike, downscale: int = 1) -> Scene:
         raise NimbusError(f"image folder {image_dir} does not exist{hint}")
 
     images_file = sparse / f"images{model_suffix(sparse)}"
-    views = []
+    views, lenses = [], {}
     for im in images:
         # The name decides what is read now and, as the view name, what writers create later.
         path = scene_file(root, im.name, f"image name in {images_file}", folder=image_dir.name)
-        cam = camera_from_colmap(rec.cameras[im.camera_id], _cam_from_world(im), sparse, image_name=im.name)
+        cam, lenses[im.name] = camera_from_colmap(rec.cameras[im.camera_id], _cam_from_world(im), sparse,
+                                                  image_name=im.name)
         views.append(View(im.name, cam, image_path=path))
     missing = [v.name for v in views if not v.image_path.is_file()]
     if missing:
@@ -428,6 +473,7 @@ def read_colmap(root: str | os.PathLike, downscale: int = 1) -> Scene:
     else:
         views = [scaled_to_image(v, downscale) for v in views]
     views = attach_aux_files(root, views, downscale)
+    views, undistorted = undistort_views(views, [lenses[v.name] for v in views], cache_dir, where=str(root))
 
     point_ids = sorted(rec.points3D)
     points = np.array([rec.points3D[i].xyz for i in point_ids], dtype=np.float64).reshape(-1, 3)
@@ -437,9 +483,11 @@ def read_colmap(root: str | os.PathLike, downscale: int = 1) -> Scene:
     test = read_split_lists(root, names)
     if test is None:
         test = llff_test_names(names)
+    metadata = {"sparse_dir": str(sparse.relative_to(root)), "image_dir": image_dir.name, "downscale": downscale}
+    if undistorted is not None:
+        metadata["undistorted"] = undistorted
     return Scene(tuple(views), frozenset(test), points, colors, root=root, source_format="colmap",
-                 metadata={"sparse_dir": str(sparse.relative_to(root)), "image_dir": image_dir.name,
-                           "downscale": downscale})
+                 metadata=metadata)
 
 
 def scene_to_reconstruction(scene: Scene, names: dict[str, str] | None = None) -> pycolmap.Reconstruction:

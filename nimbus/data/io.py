@@ -80,7 +80,8 @@ def detect_format(path: str | os.PathLike) -> str:
     )
 
 
-def load_scene(path: str | os.PathLike, downscale: int = 1, format: str = "auto") -> Scene:
+def load_scene(path: str | os.PathLike, downscale: int = 1, format: str = "auto",
+               cache_dir: str | os.PathLike | None = None) -> Scene:
     """Read a scene in any supported layout (see the module docstring).
 
     Parameters
@@ -92,6 +93,9 @@ def load_scene(path: str | os.PathLike, downscale: int = 1, format: str = "auto"
         (Mip-NeRF360 / nerfstudio); cameras are scaled to the actual image sizes.
     format : str
         ``"auto"`` (detect), ``"colmap"`` or ``"transforms"``.
+    cache_dir : path, optional
+        Where views of distorted cameras are undistorted to (default: the user cache,
+        :mod:`nimbus.data.undistort`).
 
     Returns
     -------
@@ -109,11 +113,11 @@ def load_scene(path: str | os.PathLike, downscale: int = 1, format: str = "auto"
     if format == "colmap":
         from nimbus.data.colmap import read_colmap
 
-        return read_colmap(path, downscale=int(downscale))
+        return read_colmap(path, downscale=int(downscale), cache_dir=cache_dir)
     if format == "transforms":
         from nimbus.data.transforms import read_transforms
 
-        return read_transforms(path, downscale=int(downscale))
+        return read_transforms(path, downscale=int(downscale), cache_dir=cache_dir)
     raise NimbusError(f"unknown scene format {format!r}; use one of {('auto',) + SCENE_FORMATS}")
 
 
@@ -338,9 +342,12 @@ def output_image_name(view: View) -> str:
 
     Files are copied under their own name; an in-memory image is encoded as PNG,
     so a name with another extension gets ``.png`` (read_image checks file
-    endings by suffix, so PNG bytes must not hide behind ``.jpg``).
+    endings by suffix, so PNG bytes must not hide behind ``.jpg``), and so does a
+    PNG file under such a name (a JPEG photo undistorted into the cache).
     """
     if view.image is None and view.image_path is not None:
+        if Path(view.image_path).suffix.lower() == ".png" and Path(view.name).suffix.lower() != ".png":
+            return aux_name(view.name, ".png")
         return view.name
     return view.name if Path(view.name).suffix == ".png" else aux_name(view.name, ".png")
 

@@ -18,16 +18,23 @@ Reading
   them removed (``images/frame_00001.png`` -> ``frame_00001.png``).  With
   ``downscale=d`` that shared folder ``X`` is replaced by ``X_d`` (nerfstudio's
   ``images_2/4/8``) and the cameras are scaled to the files' true sizes.
-* Lens distortion (non-zero ``k1, k2, k3, k4, p1, p2``) and fisheye /
-  equirectangular models are refused with a message saying how to fix them:
-  Nimbus renders pinhole cameras and does not resample user images.
+* Lens distortion (the instant-ngp / nerfstudio keys ``k1, k2, k3, k4, p1, p2``, per
+  frame or at the top level): with ``camera_model`` ``OPENCV`` (or none, ``PINHOLE``,
+  ``SIMPLE_PINHOLE``, ``PERSPECTIVE``) the coefficients are OpenCV's ``(k1, k2, p1, p2, k3)``
+  (a non-zero ``k4``, nerfstudio's r^8 term, has no OpenCV counterpart and is refused, as
+  nerfstudio's own undistortion does); with ``OPENCV_FISHEYE`` they are OpenCV's fisheye
+  ``(k1, k2, k3, k4)`` (``p1, p2`` must be 0).  Such views are undistorted on load into
+  pinhole views whose files live in the cache (:mod:`nimbus.data.undistort`).  Other models
+  (``EQUIRECTANGULAR``, ...) are refused.
 * ``ply_file_path`` (nerfstudio) gives the sparse points; otherwise there are none.
 * Split: ``train_list.txt`` / ``test_list.txt`` if present; else Blender's
   test file; else nerfstudio's ``test_filenames``; else the LLFF rule.
-* nerfstudio's per-frame ``mask_path`` / ``depth_file_path`` are ignored
-  (their conventions differ from Nimbus's), but a name that leads outside ROOT
-  is still refused; ``depths/`` and ``masks/`` folders are attached as for every
-  layout (:mod:`nimbus.data.io`).
+* nerfstudio's per-frame ``mask_path`` is the view's validity mask (non-zero = the
+  pixel counts, as in nerfstudio); with ``downscale=d`` it is read from the mask's folder
+  with ``_d`` appended (``masks/x.png`` -> ``masks_d/x.png``, nerfstudio's rule).  It wins over a
+  ``masks/`` file of the same view.  ``depth_file_path`` is ignored (nerfstudio's depth
+  units differ from Nimbus's), but a name that leads outside ROOT is still refused;
+  ``depths/``, ``masks/`` and ``sky/`` folders are attached as for every layout (:mod:`nimbus.data.io`).
 * Every camera value is checked (:class:`nimbus.data.camera.Camera`): finite
   numbers, positive focal lengths, whole positive sizes, a finite rotation; a
   bad one raises NimbusError naming the file and the frame.
@@ -44,7 +51,8 @@ from __future__ import annotations
 
 import json
 import os
-from pathlib import Path
+from dataclasses import replace
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 
@@ -60,20 +68,23 @@ from nimbus.data.io import (
     write_view_files,
 )
 from nimbus.data.scene import Scene, View, llff_test_names, read_split_lists, scene_file
+from nimbus.data.undistort import Lens, undistort_views
 from nimbus.errors import NimbusError
 from nimbus.utils.fs import atomic_write_bytes, atomic_write_json
 
 # OpenGL <-> OpenCV camera axes: flip y and z.
 GL_TO_CV = np.diag([1.0, -1.0, -1.0])
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-PINHOLE_CAMERA_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "PERSPECTIVE")
+# camera_model values of a perspective camera (the OpenCV / Brown model when k1.. are given) and of a fisheye.
+PERSPECTIVE_CAMERA_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "PERSPECTIVE")
+FISHEYE_CAMERA_MODELS = ("OPENCV_FISHEYE",)
 # Colour given to PLY points that carry none (mid-grey).
 DEFAULT_POINT_COLOR = 128
 WRITTEN_PLY = "sparse_pc.ply"
 # nerfstudio's split keys: lists of file paths (only test_filenames is used; all are type-checked).
 SPLIT_KEYS = ("train_filenames", "val_filenames", "test_filenames")
 # Per-frame file names Nimbus does not read but still keeps inside the scene.
-IGNORED_FRAME_FILES = ("mask_path", "depth_file_path")
+IGNORED_FRAME_FILES = ("depth_file_path",)
 
 
 def read_json(path: Path) -> dict:
@@ -136,21 +147,39 @@ def _string_list(meta: dict, key: str, file: Path) -> list[str]:
     return value
 
 
-def _intrinsics(meta: dict, frame: dict, full_image: Path, where: str) -> tuple[int, int, float, float, float, float]:
-    """(w, h, fx, fy, cx, cy) of a frame, frame keys over top-level ones."""
+def transforms_lens(model: object, values: dict) -> Lens | None:
+    """The lens of a frame from its ``camera_model`` and distortion keys (None: no distortion).
+
+    ``values`` maps the keys of :data:`DISTORTION_KEYS` that are present to their values.
+    Raises NimbusError for a non-finite or non-number coefficient, an unsupported model, and
+    coefficients the model does not have (see the module docstring).
+    """
+    name = "OPENCV" if model is None else str(model).upper()
+    k = {key: finite_value(values[key], key) if values.get(key) is not None else 0.0 for key in DISTORTION_KEYS}
+    if name in FISHEYE_CAMERA_MODELS:
+        if k["p1"] or k["p2"]:
+            raise NimbusError(f"camera_model {model} has no tangential distortion, but p1={k['p1']:g}, "
+                              f"p2={k['p2']:g} are set; remove them or use camera_model OPENCV")
+        return Lens(name, True, (k["k1"], k["k2"], k["k3"], k["k4"]))
+    if name not in PERSPECTIVE_CAMERA_MODELS:
+        raise NimbusError(f"camera_model {model} is not supported; Nimbus reads perspective cameras "
+                          f"({', '.join(PERSPECTIVE_CAMERA_MODELS)}, with k1, k2, k3, p1, p2 distortion) and "
+                          f"{', '.join(FISHEYE_CAMERA_MODELS)} (k1-k4); convert the images to one of these first")
+    if k["k4"]:
+        raise NimbusError(f"k4={k['k4']:g} with camera_model {name}: a fourth radial term (r^8) has no OpenCV "
+                          "counterpart and Nimbus cannot undistort it (nerfstudio cannot either); recalibrate with "
+                          "k1, k2, k3, p1, p2, or use camera_model OPENCV_FISHEYE if it is a fisheye lens")
+    lens = Lens(name, False, (k["k1"], k["k2"], k["p1"], k["p2"], k["k3"]))
+    return None if lens.is_identity else lens
+
+
+def _intrinsics(meta: dict, frame: dict, full_image: Path,
+                where: str) -> tuple[int, int, float, float, float, float, Lens | None]:
+    """(w, h, fx, fy, cx, cy, lens) of a frame, frame keys over top-level ones."""
     def get(key):
         return frame.get(key, meta.get(key))
 
-    model = get("camera_model")
-    if model is not None and str(model).upper() not in PINHOLE_CAMERA_MODELS:
-        raise NimbusError(f"{where}: camera_model {model} is not supported; Nimbus needs pinhole (perspective) "
-                          "images without distortion (OPENCV with zero coefficients)")
-    dist = {k: v for k in DISTORTION_KEYS if get(k) is not None and (v := finite_value(get(k), k)) != 0.0}
-    if dist:
-        raise NimbusError(
-            f"{where}: lens distortion {dist} is not supported; Nimbus needs undistorted images. "
-            "Undistort the photos (e.g. run `colmap image_undistorter` on the COLMAP model they came from and "
-            "load that folder instead), or set the coefficients to 0 if the images are already undistorted")
+    lens = transforms_lens(get("camera_model"), {key: get(key) for key in DISTORTION_KEYS})
     w, h = get("w"), get("h")
     if w is None or h is None:
         if full_image is None or not full_image.is_file():
@@ -169,7 +198,25 @@ def _intrinsics(meta: dict, frame: dict, full_image: Path, where: str) -> tuple[
     cx = get("cx") if get("cx") is not None else w / 2
     cy = get("cy") if get("cy") is not None else h / 2
     return (w, h, finite_value(fx, "fl_x"), finite_value(fy, "fl_y"), finite_value(cx, "cx"),
-            finite_value(cy, "cy"))
+            finite_value(cy, "cy"), lens)
+
+
+def _mask_file(root: Path, name: object, downscale: int, what: str) -> Path:
+    """The validity mask a frame's ``mask_path`` names (``downscale=d``: in ``<its folder>_d``), kept in ROOT."""
+    path = scene_file(root, name, what)
+    if downscale > 1:
+        rel = PurePosixPath(name)
+        if len(rel.parts) < 2:
+            raise NimbusError(f"{what}: {name!r} is not in a folder, so there is no downscaled copy to read with "
+                              f"downscale={downscale}; put the masks in masks/ with a masks_{downscale}/ copy, or "
+                              "use downscale=1")
+        folder = f"{rel.parts[0]}_{downscale}"
+        path = scene_file(root, PurePosixPath(*rel.parts[1:]).as_posix(), f"{what} (downscaled)", folder=folder)
+    if not path.is_file():
+        raise NimbusError(f"{what}: mask {path} does not exist; restore it or remove the frame's mask_path"
+                          + (f" (with downscale={downscale} the masks come from {path.parent.name}/)"
+                             if downscale > 1 else ""))
+    return path
 
 
 def opengl_c2w_to_w2c(c2w: np.ndarray) -> np.ndarray:
@@ -191,7 +238,7 @@ def camera_to_opengl_c2w(camera: Camera) -> np.ndarray:
     return c2w
 
 
-def read_transforms(path: str | os.PathLike, downscale: int = 1) -> Scene:
+def read_transforms(path: str | os.PathLike, downscale: int = 1, cache_dir: str | os.PathLike | None = None) -> Scene:
     """Read a Blender / nerfstudio ``transforms.json`` scene (see the module docstring).
 
     Parameters
@@ -200,17 +247,20 @@ def read_transforms(path: str | os.PathLike, downscale: int = 1) -> Scene:
         Scene folder, or a ``.json`` file in it.
     downscale : int
         1, or ``d`` to read images from ``<image folder>_d`` with scaled cameras.
+    cache_dir : path, optional
+        Where views of distorted cameras are undistorted to (default: the user cache,
+        :func:`nimbus.data.undistort.default_cache_dir`).
 
     Returns
     -------
     Scene
-        ``source_format="transforms"``.
+        ``source_format="transforms"``; distorted views undistorted (``metadata["undistorted"]``).
     """
     path = Path(path)
     if not path.exists():
         raise NimbusError(f"scene folder {path} does not exist; check the path")
     root, files = _transforms_files(path)
-    records = []  # (relative image path, full image path, camera, is_test)
+    records = []  # (relative image path, full image path, camera, is_test, lens, mask_path)
     missing, test_filenames, metas = [], [], []
     for file, is_test in files:
         meta = read_json(file)
@@ -229,12 +279,15 @@ def read_transforms(path: str | os.PathLike, downscale: int = 1) -> Scene:
             for key in IGNORED_FRAME_FILES:
                 if frame.get(key) is not None:
                     scene_file(root, frame[key], f"{where}: {key}")
+            mask = frame.get("mask_path")
+            if mask is not None:
+                mask = _mask_file(root, mask, downscale, f"{where}: mask_path")
             image = _resolve_image(root, frame["file_path"], f"{where}: file_path")
             if image is None:
                 missing.append(str(frame["file_path"]))
                 continue
             try:
-                w, h, fx, fy, cx, cy = _intrinsics(meta, frame, image, where)
+                w, h, fx, fy, cx, cy, lens = _intrinsics(meta, frame, image, where)
                 c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
                 if c2w.shape not in ((4, 4), (3, 4)):
                     raise NimbusError(f"transform_matrix must be 4x4 or 3x4, got shape {c2w.shape}")
@@ -243,7 +296,7 @@ def read_transforms(path: str | os.PathLike, downscale: int = 1) -> Scene:
                 raise NimbusError(e.args[0] if str(e).startswith(where) else f"{where}: {e}") from None
             except (TypeError, ValueError) as e:
                 raise NimbusError(f"{where}: malformed value ({e}); fix the transforms file") from None
-            records.append((Path(os.path.relpath(image, root)).as_posix(), image, cam, is_test))
+            records.append((Path(os.path.relpath(image, root)).as_posix(), image, cam, is_test, lens, mask))
     if missing:
         raise NimbusError(f"{len(missing)} image(s) listed in the transforms file(s) are missing under {root}: "
                           f"{format_names(missing)}; restore them or remove their frames")
@@ -256,7 +309,7 @@ def read_transforms(path: str | os.PathLike, downscale: int = 1) -> Scene:
         raise NimbusError(f"downscale={downscale} needs the images in one folder (e.g. images/) with a "
                           f"downscaled copy beside it (images_{downscale}/); {root} has none; use downscale=1")
     views = []
-    for name, (_, image, cam, _) in zip(names, records):
+    for name, (_, image, cam, _, _, _) in zip(names, records):
         if downscale > 1:
             image = scene_file(root, name, f"downscaled image of {name}", folder=f"{prefix}_{downscale}")
             if not image.is_file():
@@ -271,6 +324,8 @@ def read_transforms(path: str | os.PathLike, downscale: int = 1) -> Scene:
     else:
         views = [scaled_to_image(v, downscale) for v in views]
     views = attach_aux_files(root, views, downscale)
+    views = [replace(v, mask_path=r[5]) if r[5] is not None else v for v, r in zip(views, records)]
+    views, undistorted = undistort_views(views, [r[4] for r in records], cache_dir, where=str(root))
 
     test = read_split_lists(root, names)
     if test is None and len(files) > 1:
@@ -293,9 +348,11 @@ def read_transforms(path: str | os.PathLike, downscale: int = 1) -> Scene:
         if not ply.is_file():
             raise NimbusError(f"ply_file_path {ply} does not exist; restore it or remove the key")
         points, colors = read_ply_points(ply)
+    metadata = {"transforms_files": [f.name for f, _ in files], "image_dir": prefix, "downscale": downscale}
+    if undistorted is not None:
+        metadata["undistorted"] = undistorted
     return Scene(tuple(views), frozenset(test), points, colors, root=root, source_format="transforms",
-                 metadata={"transforms_files": [f.name for f, _ in files], "image_dir": prefix,
-                           "downscale": downscale})
+                 metadata=metadata)
 
 
 def write_transforms(scene: Scene, directory: str | os.PathLike) -> None:

@@ -182,6 +182,16 @@ def _owner_alive(tmp: Path) -> bool:
     return True
 
 
+#: Environment variable that moves the Nimbus cache folder (LPIPS weights, undistorted images).
+CACHE_ENV = "NIMBUS_CACHE"
+
+
+def cache_root() -> Path:
+    """The Nimbus cache folder: ``$NIMBUS_CACHE`` if set, else ``~/.cache/nimbus`` (nothing is created here)."""
+    env = os.environ.get(CACHE_ENV)
+    return Path(env).expanduser() if env else Path.home() / ".cache" / "nimbus"
+
+
 def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
