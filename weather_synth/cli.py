@@ -3,7 +3,8 @@
 from nimbus.cli_util import SubcommandTool
 
 # Subcommand name -> module defining it (order is the order in --help).
-COMMANDS = {name: f"weather_synth.commands.{name}" for name in ("scene", "sfm", "degrade", "demo", "preview")}
+COMMANDS = {name: f"weather_synth.commands.{name}"
+            for name in ("scene", "sfm", "undistort", "degrade", "demo", "preview")}
 
 TOOL = SubcommandTool(
     "nimbus-synth",
