@@ -408,7 +408,9 @@ def _copy_original_model(scene: Scene, tmp: Path) -> None:
     byte except the points file, whose RGB bytes (text: tokens) alone change.
     The rewritten model stays when the input's points are not ``scene.points``.
     """
-    if scene.source_format != "colmap" or scene.root is None or scene.metadata.get("downscale", 1) != 1:
+    # An undistorted scene's own model still holds the distorted cameras: keep the rewritten (pinhole) one.
+    if scene.source_format != "colmap" or scene.root is None or scene.metadata.get("downscale", 1) != 1 \
+            or "undistorted" in scene.metadata:
         return
     src = Path(scene.root) / scene.metadata.get("sparse_dir", "sparse/0")
     if not src.is_dir():
