@@ -150,16 +150,26 @@ def _write_model(root, model, params, with_image=True):
     rec.write(root / "sparse" / "0")
 
 
-def test_distorted_camera_is_refused_with_the_fix_and_zero_distortion_accepted(tmp_path):
+def test_distorted_camera_is_undistorted_zero_distortion_accepted_and_other_models_refused(tmp_path, monkeypatch):
+    """Distorted models load as undistorted pinhole views (tests/test_undistort.py checks the pixels)."""
+    monkeypatch.setenv("NIMBUS_CACHE", str(tmp_path / "cache"))
     _write_model(tmp_path / "d", "OPENCV", [30, 30, 16, 12, 0.1, 0, 0, 0])
-    with pytest.raises(NimbusError, match="OPENCV.*image_undistorter"):
-        load_scene(tmp_path / "d")
+    scene = load_scene(tmp_path / "d")
+    cam = scene.views[0].camera
+    assert (cam.fx, cam.fy) == (30, 30) and (cam.width, cam.height) != (32, 24)  # pincushion: a smaller crop
+    assert scene.metadata["undistorted"]["views"] == 1
+    assert (tmp_path / "cache" / "undistorted") in scene.views[0].image_path.parents
     _write_model(tmp_path / "z", "SIMPLE_RADIAL", [30, 16, 12, 0.0])
-    cam = load_scene(tmp_path / "z").views[0].camera
+    scene = load_scene(tmp_path / "z")
+    cam = scene.views[0].camera
     assert (cam.fx, cam.fy, cam.cx, cam.cy) == (30, 30, 16, 12)
+    assert scene.views[0].image_path == tmp_path / "z" / "images" / "a.png" and "undistorted" not in scene.metadata
+    # A fisheye with zero coefficients is still an equidistant projection, so it is resampled.
     _write_model(tmp_path / "f", "OPENCV_FISHEYE", [30, 30, 16, 12, 0, 0, 0, 0])
-    with pytest.raises(NimbusError, match="OPENCV_FISHEYE"):
-        load_scene(tmp_path / "f")
+    assert load_scene(tmp_path / "f").views[0].camera.width > 32
+    _write_model(tmp_path / "fov", "FOV", [30, 30, 16, 12, 0.9])
+    with pytest.raises(NimbusError, match="FOV camera model, which Nimbus cannot undistort.*image_undistorter"):
+        load_scene(tmp_path / "fov")
 
 
 def test_model_without_rigs_and_frames_files_is_read(tmp_path):

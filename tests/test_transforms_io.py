@@ -114,16 +114,28 @@ def test_ply_round_trip_binary(tmp_path):
     np.testing.assert_array_equal(back_cols, cols)
 
 
-def test_distortion_is_refused_with_the_fix(tmp_path):
-    _nerfstudio_scene(tmp_path, frames_extra={"k1": 0.05})
-    with pytest.raises(NimbusError, match="distortion.*k1.*undistort"):
-        load_scene(tmp_path)
+def test_distorted_frame_is_undistorted_and_the_others_are_read_as_they_are(tmp_path, monkeypatch):
+    """Per-frame k1 undistorts that frame only (tests/test_undistort.py checks the pixels)."""
+    monkeypatch.setenv("NIMBUS_CACHE", str(tmp_path / "cache"))
+    _nerfstudio_scene(tmp_path / "s", frames_extra={"k1": 0.05})
+    scene = load_scene(tmp_path / "s")
+    distorted, plain = scene.view("frame_00000.png"), scene.view("frame_00002.png")
+    assert (tmp_path / "cache" / "undistorted") in distorted.image_path.parents
+    assert distorted.camera.fx == 20.0 and (distorted.camera.width, distorted.camera.height) != (16, 12)
+    assert distorted.load_image().shape == (distorted.camera.height, distorted.camera.width, 3)
+    assert plain.image_path == tmp_path / "s" / "images" / "frame_00002.png"
+    assert scene.metadata["undistorted"]["views"] == 1
 
 
-def test_fisheye_model_is_refused(tmp_path):
-    _nerfstudio_scene(tmp_path, top_extra={"camera_model": "OPENCV_FISHEYE"})
-    with pytest.raises(NimbusError, match="OPENCV_FISHEYE"):
-        load_scene(tmp_path)
+def test_fisheye_model_is_undistorted_and_unknown_models_refused(tmp_path, monkeypatch):
+    monkeypatch.setenv("NIMBUS_CACHE", str(tmp_path / "cache"))
+    _nerfstudio_scene(tmp_path / "f", top_extra={"camera_model": "OPENCV_FISHEYE"})
+    scene = load_scene(tmp_path / "f")  # zero coefficients are still an equidistant projection: resampled
+    assert scene.metadata["undistorted"]["views"] == 4
+    assert all((tmp_path / "cache" / "undistorted") in v.image_path.parents for v in scene.views)
+    _nerfstudio_scene(tmp_path / "e", top_extra={"camera_model": "EQUIRECTANGULAR"})
+    with pytest.raises(NimbusError, match="camera_model EQUIRECTANGULAR is not supported"):
+        load_scene(tmp_path / "e")
 
 
 def test_bad_json_missing_image_and_bad_matrix(tmp_path):
