@@ -1,8 +1,8 @@
 """A small analytic ray caster for the built-in scenes (vectorised numpy, CPU).
 
 Geometry is a list of primitives with closed-form ray intersections: a ground
-disc, spheres, yaw-rotated boxes, vertical capped cylinders and a backdrop sphere
-seen from inside.  Every ray of an image is traced at once; the nearest hit
+disc, spheres, yaw-rotated boxes, vertical capped cylinders, capsules of any
+orientation and a backdrop sphere seen from inside.  Every ray of an image is traced at once; the nearest hit
 wins.  Shading is view-independent (Lambert with a fixed sun plus a hemispheric
 ambient term, no specular, no shadows), so a surface point has the same colour
 in every view.
@@ -229,7 +229,56 @@ class Cylinder:
                          np.where(side, 0.0, -np.sign(d[2]))]).astype(np.float32)
 
 
-Primitive = Sphere | Backdrop | Ground | Box | Cylinder
+@dataclass(frozen=True)
+class Capsule:
+    """A solid capsule: the points within ``radius`` of the segment from ``a`` to ``b`` (any orientation).
+
+    Slanted branches and bent trunks (the tabletop scene's tree) are chains of capsules that
+    share end points, which join without seams because each end is a full sphere.
+    """
+
+    a: tuple[float, float, float]
+    b: tuple[float, float, float]
+    radius: float
+    material: str
+
+    def corners(self) -> np.ndarray:
+        lo = np.minimum(self.a, self.b) - self.radius
+        hi = np.maximum(self.a, self.b) + self.radius
+        return _box_corners(0.5 * (lo + hi), 0.5 * (hi - lo), 0.0)
+
+    def intersect(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        # The union of a finite cylinder and two end spheres: its first hit is the nearest of the
+        # side hit (kept only between the end planes) and the two spheres' near hits.  A ray that
+        # would enter through an end plane enters the end sphere first, so the planes never count.
+        ba = np.asarray(self.b, np.float64) - np.asarray(self.a, np.float64)
+        oa = np.asarray(o, np.float64) - np.asarray(self.a, np.float64)
+        baba, baoa, oaoa = float(ba @ ba), float(ba @ oa), float(oa @ oa)
+        # float64: for a thin capsule far away the discriminant is a small difference of large terms.
+        d64 = d.astype(np.float64)
+        bard = d64[0] * ba[0] + d64[1] * ba[1] + d64[2] * ba[2]
+        rdoa = d64[0] * oa[0] + d64[1] * oa[1] + d64[2] * oa[2]
+        qa = baba - bard * bard
+        qb = baba * rdoa - baoa * bard
+        qc = baba * oaoa - baoa * baoa - self.radius ** 2 * baba
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (-qb - np.sqrt(qb * qb - qa * qc)) / qa
+            y = baoa + t * bard
+            t = np.where((t > T_MIN) & (y > 0.0) & (y < baba), t, np.inf)  # NaN (miss) compares False
+        t = t.astype(np.float32)
+        for end in (self.a, self.b):
+            t = np.minimum(t, _intersect_sphere(o, d, end, self.radius, inside=False))
+        return t
+
+    def normal(self, p: np.ndarray, d: np.ndarray, o: np.ndarray) -> np.ndarray:
+        a = np.asarray(self.a, np.float32)[:, None]
+        ba = np.asarray(self.b, np.float32)[:, None] - a
+        s = np.clip(np.sum((p - a) * ba, axis=0) / np.float32(np.sum(ba * ba)), 0.0, 1.0)
+        n = p - a - s[None, :] * ba  # from the nearest point of the axis segment
+        return (n / np.maximum(np.sqrt(np.sum(n * n, axis=0)), np.float32(1e-12))).astype(np.float32)
+
+
+Primitive = Sphere | Backdrop | Ground | Box | Cylinder | Capsule
 
 
 def surface_normal(prim: Primitive, o: np.ndarray, d: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
