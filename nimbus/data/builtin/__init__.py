@@ -1,4 +1,4 @@
-"""Built-in procedural outdoor scenes with exact ground truth.
+"""Built-in procedural scenes with exact ground truth.
 
 No public weather dataset can be downloaded, and a weather benchmark needs exact
 depth, so Nimbus renders its own clean scenes with an analytic ray caster
@@ -7,11 +7,14 @@ depth, so Nimbus renders its own clean scenes with an analytic ray caster
 supersampled anti-aliasing, and a backdrop sphere that closes the world, so
 every pixel has a finite depth.
 
-Scenes (:mod:`~nimbus.data.builtin.scenes`)
-    ``garden``  360-degree orbit around a garden table (Mip-NeRF360 garden / bicycle style);
-                z-depth from about 1 m (a tree crown, bushes) to 93 m (backdrop).
-    ``street``  forward-facing camera grid looking down a 100 m street (Deblur-NeRF factory / LLFF style);
-                z-depth from about 1.9 m (crates) to 157 m (backdrop).
+Scenes (:mod:`~nimbus.data.builtin.scenes`, :mod:`~nimbus.data.builtin.tabletop`)
+    ``garden``    360-degree orbit around a garden table (Mip-NeRF360 garden / bicycle style);
+                  z-depth from about 1 m (a tree crown, bushes) to 93 m (backdrop).
+    ``street``    forward-facing camera grid looking down a 100 m street (Deblur-NeRF factory / LLFF style);
+                  z-depth from about 1.9 m (crates) to 157 m (backdrop).
+    ``tabletop``  indoor orbit at 0.65 to 1.4 m around a bonsai on a table in a furnished room
+                  (Mip-NeRF360 bonsai / counter / kitchen style); the backdrop (and sky mask) is only
+                  what the window shows.
 
 Sizes (:data:`SIZES`)
     ``tiny``      64 x 48 px, 16 views, 2 x 2 samples per pixel (CI; about 0.5 s)
@@ -25,7 +28,7 @@ Outputs
     Views are named ``000.png``, ``001.png``, ...  Each carries the image (float32
     (H, W, 3) in [0, 1]), the z-depth of the ray through the pixel centre (float32
     (H, W), finite) and a sky mask (bool (H, W), True where that ray hits the sky /
-    backdrop).  The test split follows the LLFF rule (every 8th view: 000, 008, ...).
+    backdrop; indoors, only through the window).  The test split follows the LLFF rule (every 8th view: 000, 008, ...).
     Sparse points come from unprojected depth maps (:mod:`~nimbus.data.builtin.points`).
     World up is +z; units are metres.
 
@@ -33,7 +36,8 @@ Determinism
     The same (scene, size, seed) gives bit-identical images, depths, sky masks, points
     and files.  The seed shifts every texture and jitters object positions
     (centimetres to decimetres) and camera poses (a few centimetres, a fraction of a
-    degree), and the orbit's starting angle for ``garden``.
+    degree), and the orbit's starting angle for ``garden`` and ``tabletop`` (whose
+    tree is also grown from the seed).
 """
 
 from __future__ import annotations
@@ -46,6 +50,7 @@ from pathlib import Path
 from nimbus.data.builtin.points import PointCloudConfig, sample_points
 from nimbus.data.builtin.raycast import RenderSettings, render_view
 from nimbus.data.builtin.scenes import GardenConfig, StreetConfig
+from nimbus.data.builtin.tabletop import TabletopConfig
 from nimbus.data.scene import Scene, View, llff_test_names
 from nimbus.errors import NimbusError
 
@@ -102,7 +107,7 @@ class BuiltinScene:
 
     name: str
     description: str
-    config: GardenConfig | StreetConfig
+    config: GardenConfig | StreetConfig | TabletopConfig
 
 
 SCENES: dict[str, BuiltinScene] = {
@@ -111,6 +116,9 @@ SCENES: dict[str, BuiltinScene] = {
                                "and sky (Mip-NeRF360 garden/bicycle style)", GardenConfig()),
         BuiltinScene("street", "forward-facing camera grid looking down a 100 m street: façades, cars, crates, "
                                "lamp posts, skyline (Deblur-NeRF factory / LLFF style)", StreetConfig()),
+        BuiltinScene("tabletop", "indoor orbit at 1.1 to 2.3 object sizes around a bonsai on a table in a furnished "
+                                 "room with a window (Mip-NeRF360 bonsai / counter / kitchen style)",
+                     TabletopConfig()),
     )
 }
 
@@ -166,7 +174,7 @@ def manifest(name: str, size: str, seed: int, image_count: int) -> dict:
             "world_up": [0.0, 0.0, 1.0],
             "units": "metres",
             "depth": "float32 z-depth of the ray through the pixel centre (finite; backdrop is a surface)",
-            "sky": "True where the pixel-centre ray hits the sky / backdrop",
+            "sky": "True where the pixel-centre ray hits the sky / backdrop (indoors: through the window)",
             "test_split": "LLFF rule: every 8th view by name (000, 008, ...)",
         },
     }
