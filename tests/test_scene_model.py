@@ -143,3 +143,15 @@ def test_atomic_dir_leaves_nothing_on_failure_and_refuses_non_empty(tmp_path):
         atomic_write_text(tmp / "b.txt", "second")
     assert sorted(p.name for p in out.iterdir()) == ["b.txt"]
     assert [p.name for p in tmp_path.iterdir()] == ["out"]
+
+
+def test_a_mask_stored_as_0_and_1_reads_as_valid_where_1(tmp_path):
+    """nerfstudio masks are often 0/1 PNGs: any non-zero value marks a valid pixel."""
+    import cv2
+
+    from nimbus.data.images import read_mask
+
+    raw = np.zeros((4, 6), np.uint8)
+    raw[:, 3:] = 1
+    cv2.imwrite(str(tmp_path / "m.png"), raw)
+    np.testing.assert_array_equal(read_mask(tmp_path / "m.png"), raw > 0)

@@ -169,12 +169,15 @@ def write_depth(path: str | os.PathLike, depth: np.ndarray) -> Path:
 
 
 def read_mask(path: str | os.PathLike) -> np.ndarray:
-    """Read a single-channel mask PNG as bool (H, W) (non-zero = True)."""
+    """Read a single-channel mask PNG as bool (H, W) (non-zero = True).
+
+    Any non-zero value counts, as in nerfstudio: masks are stored as 0/255 or as 0/1.
+    """
     path = Path(path)
     raw = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
     if raw is None:
         raise NimbusError(f"mask {path} is missing or unreadable")
-    return raw > 127
+    return raw > 0
 
 
 def write_mask(path: str | os.PathLike, mask: np.ndarray) -> Path:
