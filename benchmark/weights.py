@@ -41,10 +41,9 @@ import torch
 
 from benchmark.lpips import LPIPS_NETS, TRUNKS, parameter_shapes, tap_channels
 from nimbus.errors import NimbusError
-from nimbus.utils.fs import atomic_write_bytes, sha256_file
+from nimbus.utils.fs import CACHE_ENV, atomic_write_bytes, cache_root, sha256_file
 
 SETUP_COMMAND = "nimbus-bench setup-weights"
-CACHE_ENV = "NIMBUS_CACHE"
 CACHE_FORMAT = "nimbus-lpips-weights/1"
 
 
@@ -103,12 +102,6 @@ class WeightsMissing(NimbusError):
 
 
 # --- cache -------------------------------------------------------------------------------
-def cache_root() -> Path:
-    """The Nimbus cache folder: ``$NIMBUS_CACHE`` if set, else ``~/.cache/nimbus``."""
-    env = os.environ.get(CACHE_ENV)
-    return Path(env).expanduser() if env else Path.home() / ".cache" / "nimbus"
-
-
 def weights_path(net: str) -> Path:
     """Cache file of the converted weights of ``net`` (``"alex"`` or ``"vgg"``)."""
     _check_net(net)
