@@ -478,6 +478,8 @@ class NimbusTrainer(GaussianTrainer):
                    lazy_refreshes=self.counts.get("lazy_refreshes", 0))
         if self.use_csm:
             beta = self._beta_values()
+            if beta is not None:  # trained per unit of the training frame (extent 1): report per world unit
+                beta = beta / self.frame.scale
             rec["beta_max"] = float(beta.max()) if beta is not None else None
             rec["beta_mean"] = float(beta.mean()) if beta is not None else None
         return {"components": self.components, "nimbus": rec}

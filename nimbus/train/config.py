@@ -29,6 +29,11 @@ class TrainConfig:
     image-scale knob of ``nimbus-bench tradeoff``).  Pixel-unit settings (``prune_big_screen_px``,
     NimbusGS's ``dcp_patch`` and ``ggs_r0``) then count pixels of the shrunk images.
 
+    Lengths are in units of the scene extent: the trainer works in a frame centred on the
+    mean camera centre with extent 1 (:class:`nimbus.train.trainer.SceneFrame`, as gsplat and
+    nerfstudio normalise), so ``near_plane`` 0.01 is 1 % of the extent whatever the units of
+    the reconstruction (Inria's 0.01 is in COLMAP units, which are arbitrary).
+
     ``prune_world_relative`` (ours; False is Inria's rule): Inria prunes every Gaussian
     wider than ``prune_big_world * extent`` in world units, where the extent is the radius
     of the camera centres.  Far content (hills, the end of a street) drawn at a few
@@ -78,7 +83,7 @@ class TrainConfig:
     random_background: bool = False
     backend: str = "auto"
     tile_size: int = 16
-    near_plane: float = 0.01
+    near_plane: float = 0.01  # in units of the scene extent (see above)
     # bookkeeping
     log_interval: int = 10
     checkpoint_interval: int = 1000

@@ -161,8 +161,67 @@ def downscaled_view(view: View, factor: int) -> View:
                                mask=mask, mask_path=None, sky=None, sky_path=None)
 
 
+@dataclasses.dataclass(frozen=True)
+class SceneFrame:
+    """The similarity frame training runs in: ``x_train = (x_world - center) / scale``.
+
+    ``center`` is the mean camera centre and ``scale`` the scene extent
+    (:attr:`nimbus.data.Scene.extent`), so every scene trains centred with extent 1,
+    whatever the units and the origin of its reconstruction (gsplat's
+    ``normalize_world_space``, nerfstudio's ``auto_scale_poses``).  Without it the
+    settings that are lengths (``near_plane``, the initial scale floor) meant different
+    things in a scene reconstructed in millimetres or kilometres, and a geo-referenced
+    scene (coordinates ~1e6) lost its detail to float32 rounding of the means.
+    Projections, and so every render and score, are unchanged by the frame; only lengths
+    inside the trainer (depth renders, NimbusGS's extinction) are in extent units.
+
+    Attributes
+    ----------
+    center : tuple of 3 float
+        World point that becomes the origin.
+    scale : float
+        World length that becomes 1 (> 0).
+    """
+
+    center: tuple[float, float, float]
+    scale: float
+
+    @classmethod
+    def of(cls, scene: Scene) -> "SceneFrame":
+        centers = scene.camera_centers
+        center = centers.mean(0) if len(centers) else np.zeros(3)
+        return cls(tuple(float(x) for x in center), float(scene.extent))
+
+    def camera(self, camera):
+        """``camera`` posed in this frame (same image: the camera-space scale does not change projections)."""
+        c = np.asarray(self.center, dtype=np.float64)
+        return camera.with_pose(camera.R, (np.asarray(camera.t, dtype=np.float64) + camera.R @ c) / self.scale)
+
+    def points(self, points: np.ndarray) -> np.ndarray:
+        return (np.asarray(points, dtype=np.float64) - np.asarray(self.center)) / self.scale
+
+    def scene(self, scene: Scene) -> Scene:
+        """``scene`` in this frame.  Depth maps are dropped: no trainer reads them, and they hold world lengths."""
+        views = tuple(dataclasses.replace(v, camera=self.camera(v.camera), depth=None, depth_path=None)
+                      for v in scene.views)
+        return dataclasses.replace(scene, views=views, points=self.points(scene.points))
+
+    def to_world(self, g: Gaussians) -> Gaussians:
+        """Gaussians of this frame in world coordinates (centres and scales; rotations and colours are the same)."""
+        c = torch.as_tensor(self.center, dtype=torch.float64, device=g.means.device)
+        means = (g.means.to(torch.float64) * self.scale + c).to(g.means.dtype)
+        return dataclasses.replace(g, means=means, log_scales=g.log_scales + math.log(self.scale))
+
+    def as_list(self) -> list[float]:
+        return [*self.center, self.scale]
+
+
 class GaussianTrainer:
     """Vanilla 3DGS on a :class:`~nimbus.data.Scene`.
+
+    Training runs in the scene's :class:`SceneFrame` (centred, extent 1): ``self.scene``
+    and ``self.train_views`` are in that frame, ``self.world_scene`` is the scene as given;
+    :meth:`gaussians` and ``point_cloud.ply`` are in world coordinates.
 
     Parameters
     ----------
@@ -187,6 +246,9 @@ class GaussianTrainer:
                  scene_load_args: dict | None = None) -> None:
         if not scene.train_views:
             raise NimbusError("the scene has no training views; check its train/test split")
+        self.world_scene = scene
+        self.frame = SceneFrame.of(scene)
+        scene = self.frame.scene(scene)
         self.scene = scene
         self.cfg = config
         self.out = Path(out_dir)
@@ -263,10 +325,15 @@ class GaussianTrainer:
         return {"means": c.lr_means_init * self.scene.extent, "log_scales": c.lr_scales, "quats": c.lr_quats,
                 "opacity_logits": c.lr_opacity, "sh_dc": c.lr_sh_dc, "sh_rest": c.lr_sh_rest}
 
-    def gaussians(self) -> Gaussians:
+    def frame_gaussians(self) -> Gaussians:
+        """The Gaussians being trained, in the training frame (:class:`SceneFrame`; what :meth:`render` draws)."""
         t = self.params.tensors
         return Gaussians(means=t["means"], log_scales=t["log_scales"], quats=t["quats"],
                          opacity_logits=t["opacity_logits"], sh_dc=t["sh_dc"], sh_rest=t["sh_rest"])
+
+    def gaussians(self) -> Gaussians:
+        """The Gaussians in the scene's world coordinates (render them with the cameras of ``world_scene``)."""
+        return self.frame.to_world(self.frame_gaussians())
 
     def active_sh_degree(self, it: int) -> int:
         return min(self.cfg.sh_degree, it // self.cfg.sh_degree_interval)
@@ -281,7 +348,7 @@ class GaussianTrainer:
     def render(self, view: View, sh_degree: int | None = None, background: torch.Tensor | None = None) -> dict:
         bg = background if background is not None else torch.tensor(self.cfg.background, device=self.device)
         deg = self.cfg.sh_degree if sh_degree is None else sh_degree
-        rgb, depth, alpha, meta = rasterize(self.gaussians(), view.camera, sh_degree=deg, background=bg,
+        rgb, depth, alpha, meta = rasterize(self.frame_gaussians(), view.camera, sh_degree=deg, background=bg,
                                             backend=self.cfg.backend, config=self.raster_config)
         return {"rgb": rgb, "depth": depth, "alpha": alpha, "meta": meta}
 
@@ -418,7 +485,8 @@ class GaussianTrainer:
     # --- checkpoints -------------------------------------------------------------------
     def state(self) -> dict:
         """Everything :meth:`load_checkpoint` restores: tensors and plain values only (:func:`check_plain`)."""
-        return {"iteration": self.iteration, "train_time": float(self.train_time), "params": self.params.state_dict(),
+        return {"iteration": self.iteration, "train_time": float(self.train_time), "frame": self.frame.as_list(),
+                "params": self.params.state_dict(),
                 "density": self.density.state_dict(), "generator": self.gen.get_state(),
                 "torch_rng": torch.get_rng_state(), "order": [int(i) for i in self._order],
                 "visible_steps": self.visible_steps, "extra": self.extra_state()}
@@ -459,6 +527,10 @@ class GaussianTrainer:
         self._truncate_log(self.iteration)
 
     def _restore(self, state: dict) -> None:
+        # Parameters are stored in the training frame: a checkpoint of another frame (another scene,
+        # or an older Nimbus that trained in world coordinates) would be misplaced, not resumed.
+        if not np.allclose([float(x) for x in state["frame"]], self.frame.as_list(), rtol=1e-9, atol=0):
+            raise ValueError(f"it was trained in the frame {state['frame']}, this scene's is {self.frame.as_list()}")
         self.iteration = int(state["iteration"])
         self.train_time = float(state["train_time"])
         self.params.load_state_dict(state["params"])
