@@ -219,3 +219,28 @@ def test_scorer_records_masks_and_lpips_ignores_masked_pixels():
         scorer([pred], [gt], [np.ones((10, 10), bool)])
     with pytest.raises(NimbusError, match="keeps no pixel"):
         scorer([pred], [gt], [np.zeros(size, bool)])
+
+
+def test_nimbus_bench_score_reads_the_scenes_masks(tmp_path):
+    """End to end: masks/ written with the scene limit the scores; renders differing only there score the same."""
+    from benchmark.score import score_renders
+    from nimbus.data.images import write_image
+    from nimbus.data.io import write_scene
+
+    scene = make_tiny_scene(n_views=3, width=32, height=24)
+    mask = np.zeros((24, 32), bool)
+    mask[:, 8:] = True
+    scene = scene.with_views([dataclasses.replace(scene.view("000.png"), mask=mask), *scene.views[1:]])
+    write_scene(scene, tmp_path / "scene")
+    rng = np.random.default_rng(0)
+    gt = scene.view("000.png").image
+    pred = np.clip(gt + 0.05 * rng.standard_normal(gt.shape, dtype=np.float32), 0, 1)
+    scores = []
+    for k in range(2):
+        renders = tmp_path / f"renders{k}"
+        write_image(renders / "000.png", np.where(mask[..., None], pred, rng.random(gt.shape, dtype=np.float32)))
+        scores.append(score_renders(renders, tmp_path / "scene", lpips_net=None))
+    a, b = scores
+    assert a["per_view"][0]["psnr"] == b["per_view"][0]["psnr"] and a["per_view"][0]["ssim"] == b["per_view"][0]["ssim"]
+    assert a["masked"] is True and a["per_view"][0]["valid_fraction"] == pytest.approx(0.75)
+    assert a["per_view"][0]["psnr"] > 20  # noise of 0.05 on the valid pixels, not the garbage
