@@ -304,3 +304,20 @@ def test_umeyama_and_pose_error_recover_a_known_similarity(photos):
     assert err.rotation_deg == pytest.approx(np.degrees(0.0873) / len(true), rel=1e-3)
     with pytest.raises(ValueError):
         umeyama(np.zeros((3, 3)), np.ones((3, 3)))
+
+
+def test_exif_prior_reaches_the_reconstruction(photos, tmp_path):
+    """JPEGs stating a 35 mm-equivalent focal length: the prior comes from EXIF and the report compares with it."""
+    from PIL import Image
+
+    root, cams = photos
+    f35 = round(cams["000.png"].fx / WIDTH * 36)  # the tag is an integer number of millimetres
+    (tmp_path / "jpg").mkdir()
+    for png in sorted(root.glob("*.png")):
+        exif = Image.Exif()
+        exif.get_ifd(0x8769)[0xA405] = f35
+        Image.open(png).convert("RGB").save(tmp_path / "jpg" / f"{png.stem}.jpg", exif=exif, quality=95)
+    cal = run_sfm(tmp_path / "jpg", tmp_path / "scene", single_camera=True).calibration
+    assert cal.prior_source == "exif" and cal.prior_focal_px == pytest.approx(f35 / 36 * WIDTH)
+    assert cal.focal_vs_prior == pytest.approx(cal.focal_px / cal.prior_focal_px - 1)
+    assert abs(cal.focal_vs_prior) < 0.1 and "focal-prior" not in cal.flags
