@@ -10,7 +10,7 @@ import pytest
 
 from nimbus.cli_util import ArgumentParser, run_cli
 from nimbus.data.builtin import SIZES, get_scene, list_scenes, render_builtin, write_builtin
-from nimbus.data.builtin.raycast import (Backdrop, Box, Capsule, Cylinder, Ground, RenderSettings, Sphere,
+from nimbus.data.builtin.raycast import (Backdrop, Box, Capsule, Cylinder, Ground, Rect, RenderSettings, Sphere,
                                          camera_rays, render_view, subpixel_offsets, surface_normal, trace)
 from nimbus.data.builtin.textures import fbm, spots, value_noise
 from nimbus.data.camera import Camera
@@ -46,7 +46,10 @@ def _random_rays(n: int, seed: int, origin=(0.0, 0.0, 2.5)) -> tuple[np.ndarray,
     Backdrop((0.0, 0.0, 0.0), 30.0, "m"),
     Capsule((0.3, 0.2, 1.0), (1.0, -0.4, 1.6), 0.2, "m"),
     Capsule((-0.8, 0.1, 0.4), (-0.8, 0.1, 2.0), 0.15, "m"),
-], ids=["sphere", "box-yaw", "box", "cylinder", "ground", "backdrop", "capsule", "capsule-vertical"])
+    Rect((0.0, 2.0, 1.5), (1.5, 0.0, 1.0), "m"),
+    Rect((0.5, -0.2, 4.0), (2.0, 1.0, 0.0), "m"),
+], ids=["sphere", "box-yaw", "box", "cylinder", "ground", "backdrop", "capsule", "capsule-vertical", "rect-wall",
+        "rect-ceiling"])
 def test_primitive_hits_lie_on_the_surface(prim):
     o, d = _random_rays(4000, 1)
     t = prim.intersect(o, d)
@@ -60,6 +63,12 @@ def test_primitive_hits_lie_on_the_surface(prim):
     elif isinstance(prim, Ground):
         np.testing.assert_allclose(p[2], prim.height, atol=1e-5)
         assert np.all(np.hypot(p[0], p[1]) <= prim.radius + 1e-4)
+    elif isinstance(prim, Rect):
+        q = p - np.array(prim.center)[:, None]
+        k = prim.half_size.index(0.0)
+        np.testing.assert_allclose(q[k], 0.0, atol=1e-5)  # on the plane
+        assert np.all(np.abs(q) <= np.array(prim.half_size)[:, None] + 1e-5)  # inside the rectangle
+        np.testing.assert_array_equal(np.abs(n[k]), 1.0)
     elif isinstance(prim, Capsule):
         a, b = np.array(prim.a)[:, None], np.array(prim.b)[:, None]
         s = np.clip(np.sum((p - a) * (b - a), axis=0) / np.sum((b - a) ** 2), 0.0, 1.0)
@@ -114,6 +123,13 @@ def test_capsule_hit_matches_ray_marching():
         pts = o[None, :].astype(np.float64) + steps[::10] * d[:, k][None, :] - a
         s = np.clip(pts @ ba / (ba @ ba), 0.0, 1.0)
         assert np.linalg.norm(pts - s[:, None] * ba, axis=1).min() > cap.radius - 1e-3
+
+
+def test_rect_needs_exactly_one_zero_half_size():
+    with pytest.raises(ValueError, match="one zero half-size"):
+        Rect((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), "m")
+    with pytest.raises(ValueError, match="one zero half-size"):
+        Rect((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), "m")
 
 
 def test_center_rays_match_camera_world_rays():

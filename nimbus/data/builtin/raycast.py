@@ -1,9 +1,9 @@
 """A small analytic ray caster for the built-in scenes (vectorised numpy, CPU).
 
 Geometry is a list of primitives with closed-form ray intersections: a ground
-disc, spheres, yaw-rotated boxes, vertical capped cylinders, capsules of any
-orientation and a backdrop sphere seen from inside.  Every ray of an image is traced at once; the nearest hit
-wins.  Shading is view-independent (Lambert with a fixed sun plus a hemispheric
+disc, axis-aligned rectangles, spheres, yaw-rotated boxes, vertical capped
+cylinders, capsules of any orientation and a backdrop sphere seen from inside.
+Every ray of an image is traced at once; the nearest hit wins.  Shading is view-independent (Lambert with a fixed sun plus a hemispheric
 ambient term, no specular, no shadows), so a surface point has the same colour
 in every view.
 
@@ -278,7 +278,46 @@ class Capsule:
         return (n / np.maximum(np.sqrt(np.sum(n * n, axis=0)), np.float32(1e-12))).astype(np.float32)
 
 
-Primitive = Sphere | Backdrop | Ground | Box | Cylinder | Capsule
+@dataclass(frozen=True)
+class Rect:
+    """An axis-aligned rectangle: ``half_size`` is zero along its normal axis (two-sided; the normal faces the ray).
+
+    A room's floor, ceiling and walls seen from inside: one plane test per ray, where a wall
+    built as a thin :class:`Box` needs three slabs (and covers most of the image).
+    """
+
+    center: tuple[float, float, float]
+    half_size: tuple[float, float, float]
+    material: str
+
+    def __post_init__(self) -> None:
+        if sorted(h == 0 for h in self.half_size) != [False, False, True]:
+            raise ValueError(f"a Rect has exactly one zero half-size (its normal axis), got {self.half_size}")
+
+    @property
+    def axis(self) -> int:
+        return list(self.half_size).index(0)
+
+    def corners(self) -> np.ndarray:
+        return _box_corners(self.center, self.half_size, 0.0)
+
+    def intersect(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        k = self.axis
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.float32(self.center[k] - o[k]) / d[k]
+            ok = t > T_MIN
+            for i in range(3):
+                if i != k:
+                    ok &= np.abs(t * d[i] + np.float32(o[i] - self.center[i])) <= np.float32(self.half_size[i])
+        return np.where(ok, t, np.inf).astype(np.float32)
+
+    def normal(self, p: np.ndarray, d: np.ndarray, o: np.ndarray) -> np.ndarray:
+        n = np.zeros_like(p, dtype=np.float32)
+        n[self.axis] = -np.sign(d[self.axis])
+        return n
+
+
+Primitive = Sphere | Backdrop | Ground | Box | Cylinder | Capsule | Rect
 
 
 def surface_normal(prim: Primitive, o: np.ndarray, d: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

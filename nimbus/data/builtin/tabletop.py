@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nimbus.data.builtin.raycast import Backdrop, Box, Capsule, Cylinder, Lighting, Material, Sphere, World
+from nimbus.data.builtin.raycast import Backdrop, Box, Capsule, Cylinder, Lighting, Material, Rect, Sphere, World
 from nimbus.data.builtin.scenes import (_face_uv, _look_at, _offset, _pick, _split, _tex_seed, _xy, _xyz, bark_material,
                                         brick_material, checker_material, painted_material, sky_backdrop_material,
                                         wood_material)
@@ -42,6 +42,9 @@ _WINDOW = (0.4, 0.65, 0.95, 2.05)
 
 # Materials of the central object (the bonsai, its pot, soil and mat) and of nothing else.
 OBJECT_MATERIALS = frozenset({"mat", "pot", "soil", "moss", "stone", "bark", "leaves"})
+
+# How far the room's floor, ceiling and wall rectangles reach past the corners (metres).
+EDGE = 0.01
 
 # The rug under the table: centre and half-sizes (metres).
 _RUG_BOX = ((0.1, -0.1, 0.004), (1.5, 1.1, 0.004))
@@ -367,37 +370,40 @@ class TabletopConfig:
         for k in range(len(_SPINES)):
             mats[f"book{k}"] = painted_material(seed, 80 + k, tuple(_SPINES[k]), stripes=(0.8, 0.68, 0.3),
                                                 stripe_freq=float(9 + 4 * k))
-        wall_t = 0.1  # walls are boxes this thick, just outside the room
+        # The shell is rectangles that overlap by EDGE at the corners, so no ray slips out between two.
+        ex, ey, ez = hx + EDGE, hy + EDGE, 0.5 * H + EDGE
         prims: list = [Backdrop((0.0, 0.0, 0.0), self.backdrop_radius, "sky"),
-                       Box((0.0, 0.0, -0.5 * wall_t), (hx + wall_t, hy + wall_t, 0.5 * wall_t), "floor"),
-                       Box((0.0, 0.0, H + 0.5 * wall_t), (hx + wall_t, hy + wall_t, 0.5 * wall_t), "ceiling"),
-                       Box((-hx - 0.5 * wall_t, 0.0, 0.5 * H), (0.5 * wall_t, hy, 0.5 * H), "wall_a"),
-                       Box((0.0, -hy - 0.5 * wall_t, 0.5 * H), (hx, 0.5 * wall_t, 0.5 * H), "wall_b"),
-                       Box((hx + 0.5 * wall_t, 0.0, 0.5 * H), (0.5 * wall_t, hy, 0.5 * H), "wall_c")]
-        prims += self._window_wall(wall_t)
+                       Rect((0.0, 0.0, 0.0), (ex, ey, 0.0), "floor"), Rect((0.0, 0.0, H), (ex, ey, 0.0), "ceiling"),
+                       Rect((-hx, 0.0, 0.5 * H), (0.0, ey, ez), "wall_a"),
+                       Rect((0.0, -hy, 0.5 * H), (ex, 0.0, ez), "wall_b"),
+                       Rect((hx, 0.0, 0.5 * H), (0.0, ey, ez), "wall_c")]
+        prims += self._window_wall()
         prims += self._table_and_bonsai(rng)
         prims += self._furniture(j, rng)
         return World(tuple(prims), mats, Lighting(sun_direction=(0.25, 0.35, 0.9), sun=0.3, ambient=0.8,
                                                   sky_bias=0.15), frozenset({"sky"}))
 
-    def _window_wall(self, wall_t: float) -> list:
+    def _window_wall(self) -> list:
         """The +y wall around the window opening, the frame with its mullions, and the sill."""
         hx, H = self.room_half_size[0], self.room_height
         y, x0, x1, z0, z1 = self.window
-        yc, ht = y + 0.5 * wall_t, 0.5 * wall_t
-        prims = [Box((0.5 * (-hx + x0), yc, 0.5 * H), (0.5 * (x0 + hx), ht, 0.5 * H), "wall_a"),
-                 Box((0.5 * (x1 + hx), yc, 0.5 * H), (0.5 * (hx - x1), ht, 0.5 * H), "wall_a"),
-                 Box((0.5 * (x0 + x1), yc, 0.5 * z0), (0.5 * (x1 - x0), ht, 0.5 * z0), "wall_a"),
-                 Box((0.5 * (x0 + x1), yc, 0.5 * (z1 + H)), (0.5 * (x1 - x0), ht, 0.5 * (H - z1)), "wall_a")]
-        f = 0.035  # frame bar half width
-        xm, zm = 0.5 * (x0 + x1), 0.5 * (z0 + z1)
-        prims += [Box((x0 + f, yc, zm), (f, ht, 0.5 * (z1 - z0)), "frame"),
-                  Box((x1 - f, yc, zm), (f, ht, 0.5 * (z1 - z0)), "frame"),
-                  Box((xm, yc, z1 - f), (0.5 * (x1 - x0), ht, f), "frame"),
-                  Box((xm, yc, z0 + f), (0.5 * (x1 - x0), ht, f), "frame"),
-                  Box((xm, yc, zm), (0.5 * f, ht, 0.5 * (z1 - z0)), "frame"),
-                  Box((xm, yc, zm + 0.1), (0.5 * (x1 - x0), ht, 0.5 * f), "frame"),
-                  Box((xm, y - 0.08, z0 - 0.02), (0.5 * (x1 - x0) + 0.1, 0.1, 0.02), "frame")]
+        lo, hi = -hx - EDGE, hx + EDGE
+        prims = [Rect((0.5 * (lo + x0), y, 0.5 * H), (0.5 * (x0 - lo), 0.0, 0.5 * H + EDGE), "wall_a"),
+                 Rect((0.5 * (x1 + hi), y, 0.5 * H), (0.5 * (hi - x1), 0.0, 0.5 * H + EDGE), "wall_a"),
+                 Rect((0.5 * (x0 + x1), y, 0.5 * z0), (0.5 * (x1 - x0), 0.0, 0.5 * z0), "wall_a"),
+                 Rect((0.5 * (x0 + x1), y, 0.5 * (z1 + H)), (0.5 * (x1 - x0), 0.0, 0.5 * (H - z1)), "wall_a")]
+        # Frame bars and mullions: rectangles 3 mm in front of the wall that overlap its edges by EDGE,
+        # so no ray slips between wall and frame.  (Boxes straddle the camera plane of the views
+        # beside the window and are then tested against every pixel.)
+        f, yf = 0.035, y - 0.003
+        xm, zm, hw, hh = 0.5 * (x0 + x1), 0.5 * (z0 + z1), 0.5 * (x1 - x0) + EDGE, 0.5 * (z1 - z0) + EDGE
+        prims += [Rect((x0 + f - 0.5 * EDGE, yf, zm), (f + 0.5 * EDGE, 0.0, hh), "frame"),
+                  Rect((x1 - f + 0.5 * EDGE, yf, zm), (f + 0.5 * EDGE, 0.0, hh), "frame"),
+                  Rect((xm, yf, z1 - f + 0.5 * EDGE), (hw, 0.0, f + 0.5 * EDGE), "frame"),
+                  Rect((xm, yf, z0 + f - 0.5 * EDGE), (hw, 0.0, f + 0.5 * EDGE), "frame"),
+                  Rect((xm, yf, zm), (0.5 * f, 0.0, hh), "frame"),
+                  Rect((xm, yf, zm + 0.1), (hw, 0.0, 0.5 * f), "frame"),
+                  Box((xm, y - 0.08, z0 - 0.02), (hw + 0.1, 0.1, 0.02), "frame")]  # the sill
         return prims
 
     def _table_and_bonsai(self, rng: np.random.Generator) -> list:
