@@ -244,3 +244,33 @@ def test_nimbus_bench_score_reads_the_scenes_masks(tmp_path):
     assert a["per_view"][0]["psnr"] == b["per_view"][0]["psnr"] and a["per_view"][0]["ssim"] == b["per_view"][0]["ssim"]
     assert a["masked"] is True and a["per_view"][0]["valid_fraction"] == pytest.approx(0.75)
     assert a["per_view"][0]["psnr"] > 20  # noise of 0.05 on the valid pixels, not the garbage
+
+
+@pytest.mark.slow
+def test_nimbusgs_particle_evidence_ignores_masked_streaks(tmp_path):
+    """Rain streaks only in the masked half of every training view must not switch on the particulate layer."""
+    from nimbus.nimbusgs.trainer import NimbusTrainer
+    from tests.test_nimbusgs_train import _cfg, _degrade, _downscale
+
+    s = _downscale(render_builtin("garden", size="tiny", seed=0))
+    clean = s.with_views(s.train_views[::2] + s.test_views)
+    rainy = _degrade(clean, streaks=48)
+    w = clean.views[0].camera.width
+    mask = np.ones((clean.views[0].camera.height, w), bool)
+    mask[:, w // 2:] = False
+
+    def half_rain(use_mask):
+        views = []
+        for v, r in zip(clean.views, rainy.views):
+            if v.name in clean.test_names:
+                views.append(v)
+                continue
+            img = np.where(mask[..., None], v.image, r.image).astype(np.float32)
+            views.append(dataclasses.replace(v, image=img, mask=mask if use_mask else None))
+        return clean.with_views(views)
+
+    cfg = _cfg(components="auto", iterations=41, m_init=40, write_decomposition=False)
+    picked = {k: NimbusTrainer(half_rain(k == "masked"), cfg, tmp_path / k, seed=0, progress=False).train()["components"]
+              for k in ("masked", "unmasked")}
+    assert "plm" in picked["unmasked"], picked
+    assert "plm" not in picked["masked"], picked

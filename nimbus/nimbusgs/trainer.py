@@ -374,8 +374,10 @@ class NimbusTrainer(GaussianTrainer):
             render = self.render(view, deg)
             cons.append(self.compose(vi, render)["con"])
             alpha = render["alpha"]
-            geometry.append(ViewGeometry(view.camera, render["depth"] / alpha.clamp_min(1e-6),
-                                         alpha >= self.cfg.surface_alpha_min))
+            valid = alpha >= self.cfg.surface_alpha_min
+            if self.train_masks[vi] is not None:  # masked pixels neither ask nor answer the consistency check
+                valid = valid & self.train_masks[vi].reshape(valid.shape)
+            geometry.append(ViewGeometry(view.camera, render["depth"] / alpha.clamp_min(1e-6), valid))
         return cons, geometry
 
     def _excess(self, geometry: list[ViewGeometry]) -> list[Tensor | None]:
@@ -396,7 +398,19 @@ class NimbusTrainer(GaussianTrainer):
             if vi not in self._tophat:  # from the input alone: computed once, kept as 8 bits
                 self._tophat[vi] = torch.round(white_tophat(image, window).clamp(0, 1) * 255).to(torch.uint8)
             bound = self._tophat[vi].float() / 255
-        return extract_residual(image, composite, c.residual_outlier_sigmas, excess, bound, c.residual_outlier_scope)
+        return self._masked_residual(vi, extract_residual(image, composite, c.residual_outlier_sigmas, excess, bound,
+                                                          c.residual_outlier_scope))
+
+    def _masked_residual(self, vi: int, r: Tensor) -> Tensor:
+        """``r`` with view ``vi``'s masked pixels zeroed: the loss ignores them, so R has nothing to explain there."""
+        mask = self.train_masks[vi]
+        return r if mask is None else r * mask[..., None].to(r.dtype)
+
+    def _valid_image(self, vi: int, composite: Tensor) -> Tensor:
+        """Training image ``vi`` with its masked pixels taken from ``composite``: no residual there."""
+        mask = self.train_masks[vi]
+        image = self.train_images[vi]
+        return image if mask is None else torch.where(mask[..., None], image, composite.to(image.dtype))
 
     def _refresh_all(self, it: int) -> None:
         if len(self.params) == 0:
@@ -422,8 +436,8 @@ class NimbusTrainer(GaussianTrainer):
             excesses = self._excess(geometry)
             self.timing["evidence_s" if self.use_plm is None else "plm_refresh_s"] += time.perf_counter() - t0
         if self.use_plm is None:
-            counts = [residual_tail_counts(img, con, ex)
-                      for img, con, ex in zip(self.train_images, composites, excesses)]
+            counts = [residual_tail_counts(self._valid_image(vi, con), con, ex)
+                      for vi, (con, ex) in enumerate(zip(composites, excesses))]
             self.particles = particle_evidence(counts, c.auto_particle_threshold, c.auto_particle_energy)
             self.use_plm = self.particles.present
             self.use_ggs = self.use_csm or self.use_plm
@@ -437,7 +451,7 @@ class NimbusTrainer(GaussianTrainer):
                     self.store.set(vi, self._residual(vi, composites[vi], excesses[vi]), it)
                 else:
                     restored = classical_restore(img, RestoreConfig(patch=c.dcp_patch))
-                    self.store.set(vi, extract_residual(img, restored), it)
+                    self.store.set(vi, self._masked_residual(vi, extract_residual(img, restored)), it)
             self.store.refreshes += 1
         self.event("components", **self.components_record())
 
