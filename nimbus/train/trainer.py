@@ -15,6 +15,9 @@ A run directory holds::
     point_cloud.ply       the final Gaussians in the standard 3DGS PLY layout
     renders/test/NAME.png renders of the held-out views
     results.json          test-view PSNR / SSIM, train time, peak memory, Gaussian count
+
+A view's validity mask (:func:`view_mask`) limits its training loss and its scores to the
+valid pixels; ``results.json`` records ``masked`` and each masked test view's ``valid_fraction``.
 """
 
 from __future__ import annotations
