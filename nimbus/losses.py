@@ -81,7 +81,7 @@ def ssim(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None) -> 
     m = ssim_map(a, b)
     if w is None:
         return m.mean()
-    return (m * w[..., 0]).sum() / (w.sum() * m.shape[1])
+    return (m * w[..., 0]).sum() / (w.sum() * m.shape[0] * m.shape[1])  # valid pixels x batch x channels
 
 
 def l1(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
@@ -89,7 +89,7 @@ def l1(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None) -> to
     if mask is None:
         return (a - b).abs().mean()
     a, b, w = masked_pair(a, b, mask)
-    return (a - b).abs().sum() / (w.sum() * a.shape[-1])
+    return (a - b).abs().sum() / (w.expand_as(a).sum())
 
 
 def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_dssim: float,

@@ -47,6 +47,10 @@ def test_masked_loss_equals_the_loss_on_the_valid_crop():
     assert float(photometric_loss(pred, gt, 0.2, mask)) == pytest.approx(
         float(photometric_loss(crop_p, crop_g, 0.2)), rel=1e-12)
     assert psnr(pred, gt, mask) == pytest.approx(psnr(crop_p, crop_g), rel=1e-6)
+    # a batch shares the mask
+    batch_p, batch_g = torch.stack([pred, gt]), torch.stack([gt, pred.flip(0)])
+    assert float(photometric_loss(batch_p, batch_g, 0.2, mask)) == pytest.approx(
+        float(photometric_loss(batch_p[:, ROWS, COLS], batch_g[:, ROWS, COLS], 0.2)), rel=1e-12)
     # and it is not the unmasked loss
     assert abs(float(photometric_loss(pred, gt, 0.2)) - float(photometric_loss(crop_p, crop_g, 0.2))) > 1e-3
 
