@@ -13,8 +13,8 @@ from nimbus.data.align import pose_error, umeyama
 from nimbus.data.camera import Camera
 from nimbus.data.images import write_image
 from nimbus.data.io import load_scene
-from nimbus.data.sfm import (FEW_VIEWS, SfmConfig, _distortion, choose_camera_model, exif_focal_px, list_photos,
-                             resolve_prior, run_sfm)
+from nimbus.data.sfm import (FEW_VIEWS, CameraPrior, SfmConfig, _distortion, calibration_report, choose_camera_model,
+                             exif_focal_px, list_photos, resolve_prior, run_sfm)
 from nimbus.errors import NimbusError
 from weather_synth.commands import sfm as sfm_command
 
@@ -321,3 +321,46 @@ def test_exif_prior_reaches_the_reconstruction(photos, tmp_path):
     assert cal.prior_source == "exif" and cal.prior_focal_px == pytest.approx(f35 / 36 * WIDTH)
     assert cal.focal_vs_prior == pytest.approx(cal.focal_px / cal.prior_focal_px - 1)
     assert abs(cal.focal_vs_prior) < 0.1 and "focal-prior" not in cal.flags
+
+
+def _handmade_reconstruction():
+    """3 images on a line looking at a plane z = 5; points 0-39 seen by images 1 and 2, points 40-59 by 2 and 3."""
+    rec = pycolmap.Reconstruction()
+    cam = pycolmap.Camera.create_from_model_name(1, "SIMPLE_PINHOLE", 250.0, 200, 100)
+    rec.add_camera_with_trivial_rig(cam)
+    rng = np.random.default_rng(0)
+    xyz = np.c_[rng.uniform(-1, 1, (60, 2)), np.full(60, 5.0)]
+    seen = {1: range(0, 40), 2: range(0, 60), 3: range(40, 60)}
+    index = {}
+    for image_id, x in zip((1, 2, 3), (-0.5, 0.0, 0.5)):
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.eye(3)), np.array([-x, 0.0, 0.0]))
+        keypoints = []
+        for k, p in enumerate(seen[image_id]):
+            c = xyz[p] + [-x, 0, 0]
+            keypoints.append([250 * c[0] / c[2] + 100, 250 * c[1] / c[2] + 50])
+            index[image_id, p] = k
+        image = pycolmap.Image(name=f"{image_id}.png", keypoints=np.array(keypoints), camera_id=1, image_id=image_id)
+        rec.add_image_with_trivial_frame(image, pose)
+    for p in range(60):
+        track = pycolmap.Track([pycolmap.TrackElement(i, index[i, p]) for i in (1, 2, 3) if (i, p) in index])
+        rec.add_point3D(xyz[p], track, np.zeros(3, np.uint8))
+    return rec
+
+
+def test_report_measures_tracks_and_overlap_and_flags_them():
+    rec = _handmade_reconstruction()
+    cal = calibration_report(rec, 4, "SIMPLE_PINHOLE", "test", None, SfmConfig(focal_probe=False))
+    assert (cal.registered, cal.total, cal.points, cal.cameras) == (3, 4, 60, 1)
+    assert cal.mean_track_length == pytest.approx(2.0)
+    assert cal.observations_per_view == pytest.approx((40 + 60 + 20) / 3)
+    # best neighbours: image 1 -> 2 (40 shared), 2 -> 1 (40), 3 -> 2 (20)
+    assert cal.shared_points_best_neighbour == pytest.approx(100 / 3)
+    assert cal.focal_vs_default == pytest.approx(250 / (1.2 * 200))
+    assert cal.reprojection_error_px == pytest.approx(0, abs=1e-6) and cal.distortion == 0
+    assert set(cal.flags) == {"registered", "short-tracks", "low-overlap"} and len(cal.warnings) == 3
+    # A focal length far from 1.2 x the longest side, and a prior it disagrees with, are flagged too.
+    rec.cameras[1].params = [90.0, 100.0, 50.0]
+    prior = CameraPrior("--focal", 60.0, (60.0, 100.0, 50.0))
+    cal = calibration_report(rec, 3, "SIMPLE_PINHOLE", "test", prior, SfmConfig(focal_probe=False))
+    assert {"focal-range", "focal-prior"} <= set(cal.flags) and "registered" not in cal.flags
+    assert cal.focal_vs_prior == pytest.approx(0.5)
