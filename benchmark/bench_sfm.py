@@ -99,7 +99,7 @@ def run_case(exact: Scene, photos: Path, work: Path, case: str, args) -> dict:
     row.update(registered=result.registered, sfm_s=round(time.perf_counter() - t0, 1),
                focal_err_pct=100.0 * (cal.focal_px / true_focal - 1.0), rot_deg=err.rotation_deg,
                center_rel=err.center, reproj_px=cal.reprojection_error_px, track=cal.mean_track_length,
-               probe_rise=cal.focal_probe_rise, distortion=cal.distortion, flags=list(cal.flags))
+               probe_rise=cal.focal_probe_rise, distortion=cal.to_dict()["distortion"], flags=list(cal.flags))
     if args.train:
         row["psnr_sfm"] = train_psnr(result.scene, args.preset, work / f"train_{case}", args.seed)
     return row
@@ -117,9 +117,10 @@ def format_table(rows: list[dict]) -> str:
             lines.append(f"{r['views']:>5} {r['case']:<6} failed: {r['error'][:90]}")
             continue
         probe = "-" if r["probe_rise"] is None else f"{100 * r['probe_rise']:.0f}%"
+        dist = "inf" if r["distortion"] is None else f"{100 * r['distortion']:.1f}%"
         line = (f"{r['views']:>5} {r['case']:<6} {r['registered']:>3}/{r['views']:<3} {r['focal_err_pct']:>+8.1f}% "
                 f"{r['rot_deg']:>8.2f} {100 * r['center_rel']:>6.2f}% {r['reproj_px']:>6.2f} {r['track']:>5.2f} "
-                f"{probe:>6} {100 * r['distortion']:>4.1f}%")
+                f"{probe:>6} {dist:>5}")
         if train:
             line += f" {r.get('psnr_sfm', float('nan')):>8.2f} {r.get('psnr_exact', float('nan')):>6.2f}"
         lines.append(line + "  " + (",".join(r["flags"]) or "-"))

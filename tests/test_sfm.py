@@ -13,8 +13,8 @@ from nimbus.data.align import pose_error, umeyama
 from nimbus.data.camera import Camera
 from nimbus.data.images import write_image
 from nimbus.data.io import load_scene
-from nimbus.data.sfm import (FEW_VIEWS, CameraPrior, SfmConfig, _distortion, calibration_report, choose_camera_model,
-                             exif_focal_px, list_photos, resolve_prior, run_sfm)
+from nimbus.data.sfm import (FEW_VIEWS, STRONG_DISTORTION, CameraPrior, SfmConfig, _distortion, calibration_report,
+                             choose_camera_model, exif_focal_px, list_photos, resolve_prior, run_sfm)
 from nimbus.errors import NimbusError
 from weather_synth.commands import sfm as sfm_command
 
@@ -364,3 +364,20 @@ def test_report_measures_tracks_and_overlap_and_flags_them():
     cal = calibration_report(rec, 3, "SIMPLE_PINHOLE", "test", prior, SfmConfig(focal_probe=False))
     assert {"focal-range", "focal-prior"} <= set(cal.flags) and "registered" not in cal.flags
     assert cal.focal_vs_prior == pytest.approx(0.5)
+
+
+def test_report_json_is_strict_when_the_distortion_does_not_invert():
+    """A per-photo camera with a wild distortion term (tabletop, 36 views) made the distortion infinite; the
+    manifest must stay strict JSON and the printed report must say what happened."""
+    import dataclasses
+
+    cal = calibration_report(_handmade_reconstruction(), 3, "SIMPLE_PINHOLE", "test", None,
+                             SfmConfig(focal_probe=False))
+    wild = dataclasses.replace(cal, distortion=float("inf"), distortion_px=float("inf"))
+    d = wild.to_dict()
+    assert d["distortion"] is None and d["distortion_px"] is None
+    json.dumps(d, allow_nan=False)
+    assert any("does not invert" in line for line in wild.lines())
+    cam = pycolmap.Camera.create_from_model_name(1, "SIMPLE_RADIAL", 100.0, 200, 100)
+    cam.params = [100.0, 100.0, 50.0, -2.0]  # strong barrel: the corner lies beyond the model's fold
+    assert _distortion(cam)[0] > STRONG_DISTORTION

@@ -80,6 +80,10 @@ than this fraction (5 %), the photos do not constrain the focal length: other po
 and the recovered value is a guess however small the error is.  The garden orbit sweep showed rises of
 35 to 82 % where the focal came out within 2 % (9 % for 5 registered views with a prior)."""
 
+FOCAL_PROBE_CAP = 10.0
+"""The focal probe's rise is reported up to this (1000 %): a trial adjustment that diverges (seen on a
+well-constrained 80-view orbit) only says the focal length is pinned down, not by how much."""
+
 STRONG_DISTORTION = 0.05
 """Distortion displacing the image corners by more than this fraction of their distance from the
 principal point is flagged (about 5 % of the half-diagonal): ordinary lenses after in-camera
@@ -581,10 +585,12 @@ class CalibrationReport:
     focal_probe_rise : float or None
         Relative rise of the mean reprojection error when every focal length is fixed
         :data:`FOCAL_PROBE_STEP` off its value and bundle adjustment runs again (the smaller of the
-        two directions); None when not measured (fixed intrinsics, or probing off).
+        two directions), at most :data:`FOCAL_PROBE_CAP`; None when not measured (fixed intrinsics, or
+        probing off).
     distortion : float
         Largest displacement of an image corner by the lens model, as a fraction of the corner's
-        distance from the principal point (0 for pinhole models).
+        distance from the principal point (0 for pinhole models; inf where the model does not invert
+        at a corner, which only a wildly wrong distortion does; None in :meth:`to_dict`).
     distortion_px : float
         The same in pixels.
     reprojection_error_px : float
@@ -633,11 +639,12 @@ class CalibrationReport:
     notes: tuple[str, ...] = ()
 
     def to_dict(self) -> dict:
-        """JSON-ready: floats rounded to what they mean, tuples as lists."""
+        """JSON-ready: floats rounded, tuples as lists, and a distortion that does not invert at the corners
+        (infinite) as None, since strict JSON has no infinity."""
         d = asdict(self)
         for k, v in d.items():
             if isinstance(v, float):
-                d[k] = round(v, 6)
+                d[k] = round(v, 6) if math.isfinite(v) else None
             elif isinstance(v, tuple):
                 d[k] = list(v)
         return d
@@ -658,7 +665,9 @@ class CalibrationReport:
             f"  focal length     {self.focal_px:.1f} px{vs_prior}; {self.focal_vs_default:.2f} x "
             f"({FOCAL_DEFAULT_FACTOR} x longest side {self.longest_side_px} px){spread}",
             f"  focal probe      {probe}",
-            f"  distortion       {self.distortion:.1%} of the corner radius ({self.distortion_px:.1f} px)",
+            ("  distortion       " + (f"{self.distortion:.1%} of the corner radius ({self.distortion_px:.1f} px)"
+                                      if math.isfinite(self.distortion) else "extreme: the lens model does not invert "
+                                      "at the image corners")),
             f"  reprojection     {self.reprojection_error_px:.2f} px mean",
             f"  tracks           {self.points} points, mean track length {self.mean_track_length:.2f} photos",
             f"  overlap          {self.observations_per_view:.0f} points per photo, "
@@ -818,7 +827,7 @@ def _focal_probe(rec: pycolmap.Reconstruction) -> float:
             pycolmap.logging.minloglevel = level  # bundle_adjustment turns COLMAP's info log back on
         errors.append(error if math.isfinite(error) else math.inf)
     base = max(errors[0], 1e-9)
-    return float(min(errors[1:]) / base - 1.0)
+    return float(min(min(errors[1:]) / base - 1.0, FOCAL_PROBE_CAP))
 
 
 __all__ = ["CAMERA_MODELS", "MATCHERS", "CalibrationReport", "CameraPrior", "SfmConfig", "SfmResult",
