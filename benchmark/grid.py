@@ -79,7 +79,7 @@ class Cell:
     Attributes
     ----------
     scene : str
-        Built-in scene name (``garden``, ``street``).
+        Built-in scene name (``garden``, ``street``, ``tabletop``).
     weather : str
         Weather setting name (``H``, ``R+S``, ...; :mod:`weather_synth.settings`).
     method : str

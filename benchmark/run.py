@@ -1,8 +1,9 @@
 """Run the benchmark grid (``nimbus-bench run``): synthesise, train, render and score every cell.
 
-With no arguments this is the default benchmark: both built-in scenes at the tiny size,
-all seven weather settings, NimbusGS (when registered) and 3DGS with the tiny preset,
-seed 0, into ``bench_runs/``.  Rerunning skips finished cells (see :mod:`benchmark.grid`).
+With no arguments this is the default benchmark: every built-in scene (garden, street,
+tabletop) at the tiny size, all seven weather settings, NimbusGS (when registered) and
+3DGS with the tiny preset, seed 0, into ``bench_runs/``.  Rerunning skips finished cells
+(see :mod:`benchmark.grid`).
 
 Two runs may share a root: each leaves the cells the other is running to it and lists them
 as running elsewhere (not failed).  Exit status: 0 when every cell has a result, 1 when a
