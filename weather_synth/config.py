@@ -106,6 +106,7 @@ LIMITS: dict[type, dict[str, Limit]] = {
         "min_points": at_least(2), "occlusion_window": fraction(note="of the image width"),
         "occlusion_tolerance": at_least(0), "guided_radius": fraction(note="of the image width"),
         "guided_eps": positive(), "input_size": at_least(14, note="pixels"),
+        "recon_iterations": at_least(2), "recon_min_alpha": between(0, 1, lo_open=True, hi_open=True),
     },
     ComposeConfig: {"order": one_of(*COMPOSITION_ORDERS), "snow_color": fraction()},
 }

@@ -1,4 +1,4 @@
-"""Per-view depth for the synthesizer: from the scene, from sparse SfM points, or from a monocular ONNX model.
+"""Per-view depth for the synthesizer: from the scene, a quick 3DGS fit, sparse SfM points or an ONNX model.
 
 Every source returns a z-depth map, float32 (H, W), in scene units, with
 ``inf`` where there is no surface (sky, backdrop).  Sources (``--depth``):
@@ -21,6 +21,20 @@ Every source returns a z-depth map, float32 (H, W), in scene units, with
     sparse points seen by the view with a robust scale + shift
     (:func:`align_inverse_depth`: the 3DGS median / MAD estimate, refined by
     Huber IRLS least squares).
+``recon``
+    A quick 3DGS fit to all the (clean) views, whose rendered expected depth is
+    each view's depth (:mod:`nimbus.train.depth_recon`): one model for every
+    view, so the maps are multi-view consistent by construction.  Cached by
+    content in :attr:`DepthConfig.recon_cache` (default: the user cache folder,
+    ``$NIMBUS_CACHE/depth``; ``degrade --depth-cache``).
+``auto``
+    The best source the scene allows (:func:`pick_depth_source`): ``scene`` when
+    every view has a depth map, else ``onnx`` when a model is configured
+    (:attr:`DepthConfig.model`), else ``recon``, else ``sparse`` (a scene with
+    too few views to fit).
+
+:mod:`weather_synth.depth_consistency` measures how well the maps of
+neighbouring views agree.
 
 Views with a mask (True = backdrop / sky) get ``inf`` depth there when
 :attr:`DepthConfig.backdrop_at_infinity` is set: the sky is infinitely far, so
@@ -30,8 +44,11 @@ haze covers it with pure airlight as a real atmosphere does.
 from __future__ import annotations
 
 import functools
+import os
+import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -47,6 +64,8 @@ ALIGN_METHODS = ("mad", "huber")
 HUBER_K = 1.345
 # MAD -> standard deviation for Gaussian data.
 MAD_TO_STD = 1.4826
+#: Source kinds (``onnx`` is written ``onnx:MODEL.onnx``).
+DEPTH_SOURCES = ("auto", "scene", "recon", "sparse", "onnx")
 
 
 @dataclass(frozen=True)
@@ -56,7 +75,7 @@ class DepthConfig:
     Attributes
     ----------
     source : str
-        ``"scene"``, ``"sparse"`` or ``"onnx:PATH"``.
+        ``"scene"``, ``"sparse"``, ``"recon"``, ``"onnx:PATH"`` or ``"auto"``.
     backdrop_at_infinity : bool
         Masked (backdrop / sky) pixels get infinite depth.
     min_points : int
@@ -75,6 +94,15 @@ class DepthConfig:
         onnx: shorter input side for models with dynamic input size (rounded to a multiple of 14).
     align : str
         onnx: ``"huber"`` (median / MAD start, Huber IRLS) or ``"mad"`` (3DGS's estimate only).
+    model : str
+        auto: the ONNX model to use when the scene has no depth maps ("": none, so ``recon``).
+    recon_preset, recon_iterations, recon_min_alpha :
+        recon: the fit's schedule and length, and the opacity below which a
+        pixel is sky (:class:`nimbus.train.depth_recon.ReconDepthConfig`).
+    recon_cache : str
+        recon: folder of the fit cache; "" (default): :func:`default_depth_cache`;
+        "none": fit every time.  A machine path, not a property of the result:
+        left out of the manifest.
     """
 
     source: str = "scene"
@@ -86,11 +114,17 @@ class DepthConfig:
     guided_eps: float = 1e-3
     input_size: int = 518
     align: str = "huber"
+    model: str = ""
+    recon_preset: str = "tiny"
+    recon_iterations: int = 600
+    recon_min_alpha: float = 0.5
+    recon_cache: str = ""
 
     def __post_init__(self) -> None:
         kind = self.source.split(":", 1)[0]
-        if kind not in ("scene", "sparse", "onnx") or (kind == "onnx") != (":" in self.source):
-            raise NimbusError(f"unknown depth source {self.source!r}; use scene, sparse or onnx:MODEL.onnx")
+        if kind not in DEPTH_SOURCES or (kind == "onnx") != (":" in self.source):
+            raise NimbusError(f"unknown depth source {self.source!r}; use auto, scene, recon, sparse or "
+                              "onnx:MODEL.onnx")
         if self.align not in ALIGN_METHODS:
             raise NimbusError(f"unknown depth alignment {self.align!r}; use one of {ALIGN_METHODS}")
         if self.min_points < 2:
@@ -98,6 +132,17 @@ class DepthConfig:
 
 
 # --- small helpers ------------------------------------------------------------------------
+def default_depth_cache() -> Path:
+    """Where ``nimbus-synth degrade`` caches recon fits: ``$NIMBUS_CACHE/depth``, else ``~/.cache/nimbus/depth``.
+
+    The same cache root as the LPIPS weights (``benchmark.weights.cache_root``;
+    weather_synth cannot import benchmark).  A per-user cache, not an output:
+    the files are named by content, so any run of any scene may reuse them.
+    """
+    env = os.environ.get("NIMBUS_CACHE")
+    return (Path(env).expanduser() if env else Path.home() / ".cache" / "nimbus") / "depth"
+
+
 def sanitize_depth(depth: np.ndarray) -> np.ndarray:
     """float32 depth with NaN and negative values read as "no surface" (``inf``); 0 and ``inf`` kept."""
     d = np.asarray(depth, dtype=np.float32)
@@ -327,24 +372,93 @@ def onnx_depth(model: OnnxDepthModel, camera: Camera, image: np.ndarray, points:
 
 
 # --- the source used by the synthesizer -------------------------------------------------------
-class DepthSource:
-    """Gives each view's z-depth map according to a :class:`DepthConfig` (see the module docstring)."""
+def _recon():
+    """:mod:`nimbus.train.depth_recon`, imported here only.
 
-    def __init__(self, scene: Scene, config: DepthConfig = DepthConfig()) -> None:
+    weather_synth imports nothing of nimbus but ``nimbus.data`` (and the shared
+    errors and file helpers); ``recon`` is the one deliberate exception: the
+    depth comes from the project's own 3DGS trainer.  The import is lazy so that
+    the other sources never load the trainer (nor torch).
+    """
+    from nimbus.train import depth_recon
+
+    return depth_recon
+
+
+def recon_config(config: DepthConfig):
+    """The :class:`nimbus.train.depth_recon.ReconDepthConfig` a depth config describes."""
+    return _recon().ReconDepthConfig(preset=config.recon_preset, iterations=config.recon_iterations,
+                                     min_alpha=config.recon_min_alpha)
+
+
+def pick_depth_source(scene: Scene, config: DepthConfig = DepthConfig()) -> tuple[str, str]:
+    """The source ``auto`` stands for on ``scene``, and why (one line).
+
+    In order of preference: the scene's own depth maps (exact); a configured ONNX
+    model (:attr:`DepthConfig.model`: per-view, but learned on real photos);
+    ``recon`` (a 3DGS fit: consistent across views); ``sparse`` (view by view
+    between the SfM points; only when the scene has too few views to fit).
+    """
+    views = scene.views
+    if views and all(v.has_depth for v in views):
+        return "scene", "every view has a depth map"
+    lacking = "no view has a depth map" if not any(v.has_depth for v in views) else \
+        f"{sum(not v.has_depth for v in views)} of {len(views)} views have no depth map"
+    if config.model:
+        return f"onnx:{config.model}", f"{lacking}; an ONNX depth model is configured"
+    min_views = _recon().MIN_RECON_VIEWS
+    if len(views) >= min_views:
+        return "recon", f"{lacking}; no ONNX model configured (depth.model), so a 3DGS fit to the views"
+    if len(scene.points) >= config.min_points:
+        return "sparse", f"{lacking}; {len(views)} views are too few to fit 3DGS (need {min_views}), so the " \
+                         "densified sparse points"
+    raise NimbusError(f"no depth for haze: {lacking}, the scene has {len(views)} views (a 3DGS fit needs "
+                      f"{min_views}) and {len(scene.points)} sparse points (need {config.min_points}); add "
+                      "depths/<name>.npy or give --depth onnx:MODEL.onnx")
+
+
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+class DepthSource:
+    """Gives each view's z-depth map according to a :class:`DepthConfig` (see the module docstring).
+
+    ``source="auto"`` is resolved here (:func:`pick_depth_source`); the choice is
+    printed as one line to ``log`` and recorded by :meth:`describe`.  ``recon``
+    fits at construction (so a scene it cannot fit fails before anything is
+    written), printing its progress to ``log``.
+    """
+
+    def __init__(self, scene: Scene, config: DepthConfig = DepthConfig(),
+                 log: Callable[[str], None] | None = _stderr) -> None:
         self.scene = scene
         self.config = config
-        self.kind = config.source.split(":", 1)[0]
+        self.log = log or (lambda line: None)
+        self.requested = config.source
+        self.reason = ""
+        source = config.source
+        if source == "auto":
+            source, self.reason = pick_depth_source(scene, config)
+            self.log(f"depth: auto picked {source} ({self.reason})")
+        self.source = source
+        self.kind = source.split(":", 1)[0]
         self.model = None
+        self.recon = None
         if self.kind == "scene":
             missing = [v.name for v in scene.views if not v.has_depth]
             if missing:
                 raise NimbusError(f"{len(missing)} view(s) have no depth map (e.g. {missing[0]}); add "
-                                  "depths/<name>.npy to the scene or use --depth sparse / --depth onnx:MODEL.onnx")
+                                  "depths/<name>.npy to the scene or use --depth auto (picks one), --depth recon, "
+                                  "--depth sparse or --depth onnx:MODEL.onnx")
+        elif self.kind == "recon":
+            cache = None if config.recon_cache == "none" else (config.recon_cache or default_depth_cache())
+            self.recon = _recon().recon_depth(scene, recon_config(config), cache, self.log)
         elif len(scene.points) < config.min_points:
             raise NimbusError(f"--depth {self.kind} needs the scene's sparse points, but it has {len(scene.points)}; "
-                              "use a COLMAP scene with points3D or --depth scene")
+                              "use a COLMAP scene with points3D, --depth recon or --depth scene")
         if self.kind == "onnx":
-            self.model = OnnxDepthModel(config.source.split(":", 1)[1], config.input_size)
+            self.model = OnnxDepthModel(source.split(":", 1)[1], config.input_size)
 
     def __call__(self, view: View, image: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
         """z-depth (H, W) float32 (inf = no surface) and per-view info for the manifest."""
@@ -353,6 +467,11 @@ class DepthSource:
             if depth.shape != (view.camera.height, view.camera.width):
                 raise NimbusError(f"depth map of view {view.name} has shape {depth.shape}; its camera is "
                                   f"{view.camera.width}x{view.camera.height}")
+        elif self.kind == "recon":
+            if view.name not in self.recon.depths:
+                raise NimbusError(f"view {view.name} was not part of the recon depth fit; degrade the scene the "
+                                  "depth source was built for")
+            depth, info = self.recon.depths[view.name], {}
         else:
             image = view.load_image() if image is None else image
             if self.kind == "sparse":
@@ -367,11 +486,18 @@ class DepthSource:
         return depth, info
 
     def describe(self) -> dict:
-        d = {"source": self.config.source, "config": {k: v for k, v in vars(self.config).items()}}
+        """The source for the manifest: what was asked, what ran (and why, for ``auto``), its settings."""
+        config = {k: v for k, v in vars(self.config).items() if k != "recon_cache"}
+        d = {"source": self.source, "config": config}
+        if self.requested != self.source:
+            d.update(requested=self.requested, reason=self.reason)
         if self.model is not None:
             from nimbus.utils.fs import sha256_file
 
             d["model_sha256"] = sha256_file(self.model.path)
+        if self.recon is not None:
+            # Not the time nor whether it came from the cache: a cached run writes the same manifest.
+            d["recon"] = {k: v for k, v in self.recon.info.items() if k not in ("cached", "fit_seconds")}
         return d
 
 
@@ -388,7 +514,7 @@ def depth_scale(scene: Scene, source: DepthSource, max_views: int = 4) -> float:
     dists = []
     for i in idx:
         v = views[i]
-        if source.kind == "scene":
+        if source.kind in ("scene", "recon"):  # dense maps: every surface pixel counts
             d, _ = source(v)
             r = d.astype(np.float64) * ray_norm(v.camera)
             dists.append(r[np.isfinite(r) & (r > 0)])

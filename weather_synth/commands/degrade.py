@@ -29,9 +29,16 @@ def add_synth_arguments(parser: argparse.ArgumentParser) -> None:
                         "rain -> snow -> haze); physical: one medium per scene, depth-aware particles, linear light")
     g.add_argument("--seed", type=seed_arg, default=0, help=f"scene seed in [0, {MAX_SEED}]: same seed, same bytes")
     g.add_argument("--depth", default="auto", metavar="SOURCE",
-                   help="depth for haze and depth-aware particles: scene (the views' depth maps), sparse "
-                        "(densified SfM points), onnx:MODEL.onnx (monocular model aligned to the points), "
-                        "auto (scene if every view has a depth map, else sparse)")
+                   help="depth for haze and depth-aware particles: scene (the views' depth maps), recon (a quick "
+                        "3DGS fit to the views, rendered per view: consistent across views), sparse (densified SfM "
+                        "points, view by view), onnx:MODEL.onnx (monocular model aligned to the points), auto "
+                        "(scene if every view has a depth map, else onnx with --depth-model, else recon; says "
+                        "which it picked)")
+    g.add_argument("--depth-model", default=None, metavar="MODEL.onnx",
+                   help="ONNX depth model that --depth auto uses for a scene without depth maps")
+    g.add_argument("--depth-cache", default=None, metavar="DIR|none",
+                   help="where --depth recon keeps its fits, so a second degrade of the scene reuses them "
+                        "(default: $NIMBUS_CACHE/depth, else ~/.cache/nimbus/depth; 'none': no cache)")
     h = parser.add_argument_group("haze")
     h.add_argument("--haze-mode", choices=HAZE_MODES, default=None,
                    help="override the protocol's haze model (heterogeneous: world-space height fog with 3D noise)")
@@ -82,7 +89,7 @@ def _intensity(text: str, preset, what: str):
 
 
 def config_from_args(args: argparse.Namespace, scene=None) -> SynthConfig:
-    """The SynthConfig the weather options describe (``scene`` resolves ``--depth auto``)."""
+    """The SynthConfig the weather options describe (``scene`` is not used: ``auto`` is resolved on use)."""
     cfg = protocol_config(args.protocol, seed=args.seed)
     haze = cfg.haze
     if args.haze_mode is not None:
@@ -111,12 +118,10 @@ def config_from_args(args: argparse.Namespace, scene=None) -> SynthConfig:
         compose = replace(compose, order=args.order)
     if args.linear is not None:
         compose = replace(compose, linear=args.linear)
-    depth_src = args.depth
-    if depth_src == "auto":
-        depth_src = "scene" if scene is None or all(v.has_depth for v in scene.views) or not len(scene.points) \
-            else "sparse"
-    cfg = replace(cfg, haze=haze, rain=rain, snow=snow, compose=compose,
-                  depth=replace(cfg.depth, source=depth_src),
+    # auto is resolved by the depth source (weather_synth.depth.pick_depth_source), which says what it picked.
+    depth = replace(cfg.depth, source=args.depth, model=getattr(args, "depth_model", None) or "",
+                    recon_cache=getattr(args, "depth_cache", None) or "")
+    cfg = replace(cfg, haze=haze, rain=rain, snow=snow, compose=compose, depth=depth,
                   depth_aware=cfg.depth_aware if args.depth_aware is None else args.depth_aware)
     return apply_overrides(cfg, args.set)
 
