@@ -106,6 +106,37 @@ def find_settings(dataset: str | os.PathLike) -> list[tuple[str, Path, dict]]:
     return sorted(found, key=lambda x: (order.get(x[0], len(order)), x[0]))
 
 
+def depth_label(manifest: dict) -> str | None:
+    """``"recon 0.88"``: a setting's depth source and mean depth consistency, or None when it used no depth."""
+    depth = (manifest.get("scene") or {}).get("depth")
+    if not isinstance(depth, dict):
+        return None
+    mean = (depth.get("consistency") or {}).get("mean")
+    src = str(depth.get("source", "?")).split(":", 1)[0]
+    return f"{src} {mean:.2f}" if isinstance(mean, (int, float)) else src
+
+
+def depth_lines(dataset: str | os.PathLike) -> list[str]:
+    """What ``nimbus-synth preview`` prints about the dataset's depth: source, why, consistency (one line each)."""
+    lines, seen = [], set()
+    for name, _, m in find_settings(dataset):
+        depth = (m.get("scene") or {}).get("depth")
+        if not isinstance(depth, dict):
+            continue
+        cons = depth.get("consistency") or {}
+        mean, tol = cons.get("mean"), cons.get("tolerance")
+        text = f"depth: {depth.get('source')}"
+        if depth.get("reason"):
+            text += f" (picked by {depth.get('requested')}: {depth['reason']})"
+        if isinstance(mean, (int, float)) and isinstance(tol, (int, float)):
+            text += (f"; consistency {mean:.3f} (share of pixels whose depth agrees within {tol:.0%} with the "
+                     "nearest other view's)")
+        if text not in seen:
+            seen.add(text)
+            lines.append(text)
+    return lines
+
+
 def dataset_contact_sheet(dataset: str | os.PathLike, max_views: int = 6, tile_width: int = 160,
                           views: Sequence[str] | None = None) -> np.ndarray:
     """Contact sheet of a degraded dataset: a clean row, then one row per setting; uint8 RGB.
@@ -133,5 +164,6 @@ def dataset_contact_sheet(dataset: str | os.PathLike, max_views: int = 6, tile_w
     rows = [("clean", [read_image(confined_path(first, records[v]["clean"], "image")) for v in views])]
     for name, folder, m in settings:
         recs = {v["name"]: v for v in m["views"]}
-        rows.append((name, [read_image(confined_path(folder, recs[v]["image"], "image")) for v in views]))
+        label = depth_label(m) if "H" in name.split("+") else None  # the haze rows: where depth shows
+        rows.append((f"{name}  [{label}]" if label else name, [read_image(confined_path(folder, recs[v]["image"], "image")) for v in views]))
     return make_contact_sheet(rows, [Path(v).stem for v in views], tile_width)

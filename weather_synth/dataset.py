@@ -89,6 +89,7 @@ from nimbus.utils.fs import (atomic_dir, atomic_write_bytes, atomic_write_json, 
 from weather_synth.archive import encode_layers, jsonable
 from weather_synth.config import SynthConfig
 from weather_synth.depth import DepthConfig, visible_point_indices
+from weather_synth.depth_consistency import scene_depth_consistency
 from weather_synth.settings import WeatherSetting
 from weather_synth.synth import Synthesizer
 
@@ -312,6 +313,11 @@ def _degrade_into(scene: Scene, out: Path, settings: Sequence[WeatherSetting], c
     clean_copy: Path | None = None  # clean/ of the first finished setting: later settings copy its files
     with Synthesizer(scene, config, cache_parent=out) as synth:
         synth.prepare(list(settings))
+        # How well the views' depth maps agree (weather_synth.depth_consistency), once per scene: the haze of
+        # every setting that uses depth is only as view-consistent as these maps.
+        consistency = None
+        if any(synth.needs_depth(s) for s in settings):
+            consistency = scene_depth_consistency(scene, lambda v: synth.depth(v)[0])
         for setting in settings:
             start = time.perf_counter()
             with atomic_dir(out / setting.name, overwrite=True) as tmp:
@@ -355,7 +361,8 @@ def _degrade_into(scene: Scene, out: Path, settings: Sequence[WeatherSetting], c
                 summary = SettingSummary(setting.name, n, t_sum / n if setting.haze else None, cov_sum / n,
                                          time.perf_counter() - start)
                 atomic_write_json(tmp / MANIFEST, jsonable(_manifest(scene, setting, config, synth, view_records,
-                                                                     summary, fmt, source, point_colours)))
+                                                                     summary, fmt, source, point_colours,
+                                                                     consistency)))
             summary.seconds = time.perf_counter() - start
             summaries.append(summary)
             clean_copy = out / setting.name / CLEAN_DIR
@@ -475,7 +482,11 @@ def _recolour_points3d_txt(data: bytes, points: np.ndarray, colours: np.ndarray)
 
 
 def _manifest(scene: Scene, setting: WeatherSetting, config: SynthConfig, synth: Synthesizer, views: list,
-              summary: SettingSummary, fmt: str, source: str | None, point_colours: DegradedPointColours) -> dict:
+              summary: SettingSummary, fmt: str, source: str | None, point_colours: DegradedPointColours,
+              consistency: dict | None = None) -> dict:
+    described = synth.describe()
+    if consistency is not None and "depth" in described:
+        described["depth"]["consistency"] = consistency
     return {
         "format": FORMAT,
         "generator": "nimbus-synth degrade",
@@ -495,13 +506,13 @@ def _manifest(scene: Scene, setting: WeatherSetting, config: SynthConfig, synth:
             "point_colours": point_colours.describe(),
             "metadata": scene.metadata,
         },
-        "scene": synth.describe(),
+        "scene": described,
         "summary": summary.to_dict(),
         "layers": {
             "transmission": "(H, W) float32 camera-to-surface transmission (haze)",
             "airlight": "(3,) float32 RGB airlight, display values (haze)",
             "depth": "(H, W) float32 z-depth used for haze, scene units, inf = sky (haze; only when estimated "
-                     "by --depth sparse / onnx, else see depths/ and sky/)",
+                     "by --depth recon / sparse / onnx, else see depths/ and sky/)",
             "rain": "(H, W) float32 additive rain radiance before attenuation (rain)",
             "snow": "(H, W) float32 snow alpha (snow)",
             "rain_depth": "(H, W) float32 z-depth of the dominant rain slice, inf = none, 0 = no depth (rain)",

@@ -7,7 +7,8 @@ from pathlib import Path
 
 from nimbus.errors import NimbusError
 
-HELP = "draw a contact sheet (rows: clean and each weather setting, columns: views) of a degraded dataset"
+HELP = ("draw a contact sheet (rows: clean and each weather setting, columns: views) of a degraded dataset; "
+        "haze rows and the printout show the depth source and its multi-view consistency")
 EXAMPLE = "nimbus-synth preview bench/garden --out garden_sheet.png"
 
 
@@ -24,7 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from nimbus.data.images import write_image
     from nimbus.utils.fs import check_output_dir, refuse_overlap
-    from weather_synth.contact_sheet import check_sheet_options, dataset_contact_sheet
+    from weather_synth.contact_sheet import check_sheet_options, dataset_contact_sheet, depth_lines
 
     out = Path(args.out)
     if out.suffix.lower() != ".png":
@@ -40,5 +41,7 @@ def run(args: argparse.Namespace) -> int:
     check_output_dir(out.parent, overwrite=True, flag="--out's folder")
     check_sheet_options(args.views, args.tile_width)
     write_image(out, dataset_contact_sheet(args.dataset, args.views, args.tile_width, args.view))
+    for line in depth_lines(args.dataset):
+        print(line)
     print(f"wrote {out}")
     return 0
