@@ -9,10 +9,11 @@ For each view count N, renders N views of the scene's camera rig (the orbit for
 ``garden``: exact intrinsics and poses), writes the images only, and runs
 :func:`nimbus.data.sfm.run_sfm` once per case:
 
-``self``    no prior: the focal length is self-calibrated (what a user without EXIF gets)
-``prior``   ``focal_px`` = the true focal length, refined by bundle adjustment
-``fixed``   the true focal length kept fixed (``fix_intrinsics``)
-``single``  no prior, one camera shared by every photo (``single_camera``)
+``self``       the defaults: no prior, the focal length is self-calibrated (what a user without EXIF
+               gets), one camera shared by the photos (all the same size)
+``prior``      ``focal_px`` = the true focal length, refined by bundle adjustment
+``fixed``      the true focal length kept fixed (``fix_intrinsics``)
+``per-photo``  no prior, a camera per photo (``single_camera=False``, COLMAP's default without EXIF)
 
 and prints, per N and case: registered photos, the focal error (%), the pose error
 after a similarity (Umeyama) fit of the camera centres (mean rotation error in degrees,
@@ -45,7 +46,7 @@ from nimbus.data.sfm import SfmConfig, run_sfm
 from nimbus.errors import NimbusError
 from nimbus.utils.fs import atomic_write_json
 
-CASES = ("self", "prior", "fixed", "single")
+CASES = ("self", "prior", "fixed", "per-photo")
 
 
 def render_photos(scene: str, n_views: int, width: int, height: int, seed: int, out: Path) -> Scene:
@@ -72,7 +73,7 @@ def case_config(case: str, true_focal: float, threads: int, seed: int) -> SfmCon
     base = SfmConfig(seed=seed, num_threads=threads)
     return {"self": base, "prior": replace(base, focal_px=true_focal),
             "fixed": replace(base, focal_px=true_focal, fix_intrinsics=True),
-            "single": replace(base, single_camera=True)}[case]
+            "per-photo": replace(base, single_camera=False)}[case]
 
 
 def train_psnr(scene: Scene, preset: str, out: Path, seed: int) -> float:
@@ -106,7 +107,7 @@ def run_case(exact: Scene, photos: Path, work: Path, case: str, args) -> dict:
 
 
 def format_table(rows: list[dict]) -> str:
-    head = (f"{'views':>5} {'case':<6} {'reg':>7} {'focal err':>9} {'rot deg':>8} {'centre':>7} {'reproj':>6} "
+    head = (f"{'views':>5} {'case':<9} {'reg':>7} {'focal err':>9} {'rot deg':>8} {'centre':>7} {'reproj':>6} "
             f"{'track':>5} {'probe':>6} {'dist':>5}")
     train = any("psnr_sfm" in r for r in rows)
     if train:
@@ -114,11 +115,11 @@ def format_table(rows: list[dict]) -> str:
     lines = [head + "  flags", "-" * (len(head) + 7)]
     for r in rows:
         if "error" in r:
-            lines.append(f"{r['views']:>5} {r['case']:<6} failed: {r['error'][:90]}")
+            lines.append(f"{r['views']:>5} {r['case']:<9} failed: {r['error'][:90]}")
             continue
         probe = "-" if r["probe_rise"] is None else f"{100 * r['probe_rise']:.0f}%"
         dist = "inf" if r["distortion"] is None else f"{100 * r['distortion']:.1f}%"
-        line = (f"{r['views']:>5} {r['case']:<6} {r['registered']:>3}/{r['views']:<3} {r['focal_err_pct']:>+8.1f}% "
+        line = (f"{r['views']:>5} {r['case']:<9} {r['registered']:>3}/{r['views']:<3} {r['focal_err_pct']:>+8.1f}% "
                 f"{r['rot_deg']:>8.2f} {100 * r['center_rel']:>6.2f}% {r['reproj_px']:>6.2f} {r['track']:>5.2f} "
                 f"{probe:>6} {dist:>5}")
         if train:

@@ -14,7 +14,8 @@ from nimbus.data.camera import Camera
 from nimbus.data.images import write_image
 from nimbus.data.io import load_scene
 from nimbus.data.sfm import (FEW_VIEWS, STRONG_DISTORTION, CameraPrior, SfmConfig, _distortion, calibration_report,
-                             choose_camera_model, exif_focal_px, list_photos, resolve_prior, run_sfm)
+                             choose_camera_model, choose_camera_sharing, exif_focal_px, list_photos, resolve_prior,
+                             run_sfm)
 from nimbus.errors import NimbusError
 from weather_synth.commands import sfm as sfm_command
 
@@ -381,3 +382,28 @@ def test_report_json_is_strict_when_the_distortion_does_not_invert():
     cam = pycolmap.Camera.create_from_model_name(1, "SIMPLE_RADIAL", 100.0, 200, 100)
     cam.params = [100.0, 100.0, 50.0, -2.0]  # strong barrel: the corner lies beyond the model's fold
     assert _distortion(cam)[0] > STRONG_DISTORTION
+
+
+def test_photos_of_one_size_share_a_camera_unless_told_otherwise(photos, tmp_path):
+    root, _ = photos
+    names = list_photos(root)
+    shared, why = choose_camera_sharing(root, names, SfmConfig())
+    assert shared and "one shared camera" in why and f"{WIDTH}x{HEIGHT}" in why
+    assert choose_camera_sharing(root, names, SfmConfig(single_camera=False)) == (False, "a camera per photo "
+                                                                                         "(--camera-per-photo)")
+    mixed = tmp_path / "mixed"
+    write_image(mixed / "a.png", np.zeros((40, 60, 3), np.float32))
+    write_image(mixed / "b.png", np.zeros((30, 60, 3), np.float32))
+    assert choose_camera_sharing(mixed, ["a.png", "b.png"], SfmConfig()) == (False, "a camera per photo: the "
+                                                                                    "photos have 2 sizes")
+    _jpeg_with_exif(tmp_path / "zoom" / "a.jpg", (400, 300), {}, {0xA405: 28})
+    _jpeg_with_exif(tmp_path / "zoom" / "b.jpg", (400, 300), {}, {0xA405: 50})
+    assert not choose_camera_sharing(tmp_path / "zoom", ["a.jpg", "b.jpg"], SfmConfig())[0]
+    assert choose_camera_sharing(tmp_path / "zoom", ["a.jpg", "b.jpg"], SfmConfig(use_exif=False))[0]
+    # The default run records the decision; the command's flags map to True / False.
+    result = run_sfm(root, tmp_path / "scene", camera_model="SIMPLE_PINHOLE")
+    assert result.calibration.cameras == 1 and "one shared camera" in result.calibration.model_reason
+    assert json.loads((tmp_path / "scene" / "manifest.json").read_text())["sfm_config"]["single_camera"] is True
+    assert _args("p", "--out", "o").single_camera is None
+    assert _args("p", "--out", "o", "--camera-per-photo").single_camera is False
+    assert _args("p", "--out", "o", "--single-camera").single_camera is True

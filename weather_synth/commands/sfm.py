@@ -37,8 +37,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--camera-model", choices=CAMERA_MODELS, default=default.camera_model,
                         help="camera model to estimate (auto: SIMPLE_RADIAL, or SIMPLE_PINHOLE for fewer than 8 "
                              "photos); distorted models are undistorted to PINHOLE afterwards")
-    parser.add_argument("--single-camera", action="store_true",
-                        help="all photos were taken by one camera with the same zoom")
+    sharing = parser.add_mutually_exclusive_group()
+    sharing.add_argument("--single-camera", dest="single_camera", action="store_const", const=True, default=None,
+                         help="all photos share one camera (the default when they have one size and the same or "
+                              "no EXIF focal length)")
+    sharing.add_argument("--camera-per-photo", dest="single_camera", action="store_const", const=False,
+                         help="fit a camera to each photo (photos from several cameras or zooms)")
     prior = parser.add_mutually_exclusive_group()
     prior.add_argument("--focal", type=float, metavar="PX",
                        help="prior focal length in pixels of the photos (default: EXIF when every photo states it)")
