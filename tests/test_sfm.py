@@ -402,7 +402,7 @@ def test_photos_of_one_size_share_a_camera_unless_told_otherwise(photos, tmp_pat
     assert choose_camera_sharing(tmp_path / "zoom", ["a.jpg", "b.jpg"], SfmConfig(use_exif=False))[0]
     # The default run records the decision; the command's flags map to True / False.
     result = run_sfm(root, tmp_path / "scene", camera_model="SIMPLE_PINHOLE")
-    assert result.calibration.cameras == 1 and "one shared camera" in result.calibration.model_reason
+    assert result.calibration.cameras == 1 and "one shared camera" in result.calibration.camera_sharing
     assert json.loads((tmp_path / "scene" / "manifest.json").read_text())["sfm_config"]["single_camera"] is True
     assert _args("p", "--out", "o").single_camera is None
     assert _args("p", "--out", "o", "--camera-per-photo").single_camera is False

@@ -242,8 +242,8 @@ def choose_camera_model(requested: str, n_photos: int) -> tuple[str, str]:
         return "SIMPLE_PINHOLE", (f"auto: {n_photos} photos (< {FEW_VIEWS}) cannot separate lens distortion from "
                                   "the focal length, so none is estimated (give --camera-model SIMPLE_RADIAL if "
                                   "the photos are distorted)")
-    return "SIMPLE_RADIAL", (f"auto: {n_photos} photos; one focal length and one radial distortion term per "
-                             "camera, the fewest that fit real lenses (principal point fixed at the centre)")
+    return "SIMPLE_RADIAL", (f"auto, {n_photos} photos: a focal length and one radial term, the fewest that fit "
+                             "real lenses")
 
 
 def choose_camera_sharing(photos_dir: Path, photos: list[str], config: SfmConfig) -> tuple[bool, str]:
@@ -496,7 +496,7 @@ def run_sfm(photos_dir: str | os.PathLike, out_dir: str | os.PathLike, overwrite
         work = Path(work)
         rec = _reconstruct(photos_dir, photos, work, config, model, prior, say)
         say("measuring the calibration")
-        report = calibration_report(rec, len(photos), model, f"{reason}; {sharing}", prior, config, notes)
+        report = calibration_report(rec, len(photos), model, reason, prior, config, notes, sharing)
         say(f"writing the scene ({rec.num_reg_images()} registered photos)")
         _write_scene(rec, photos_dir, work, Path(tmp), model)
         atomic_write_json(Path(tmp) / "manifest.json", {
@@ -603,7 +603,9 @@ class CalibrationReport:
     fixed : bool
         The prior's intrinsics were kept fixed in bundle adjustment.
     cameras : int
-        Distinct cameras among the registered photos (one per photo without EXIF unless single camera).
+        Distinct cameras among the registered photos.
+    camera_sharing : str
+        Why the photos share one camera or have one each (:func:`choose_camera_sharing`).
     focal_px : float
         Median recovered focal length over the registered photos' cameras, pixels of the photos as given.
     focal_spread : float
@@ -653,6 +655,7 @@ class CalibrationReport:
     prior_focal_px: float | None
     fixed: bool
     cameras: int
+    camera_sharing: str
     focal_px: float
     focal_spread: float
     focal_vs_prior: float | None
@@ -693,6 +696,7 @@ class CalibrationReport:
             "calibration:",
             f"  registered       {self.registered} / {self.total} photos",
             f"  camera model     {self.camera_model} ({self.model_reason})",
+            f"  cameras          {self.cameras} ({self.camera_sharing or 'as COLMAP grouped the photos'})",
             f"  prior            {prior}",
             f"  focal length     {self.focal_px:.1f} px{vs_prior}; {self.focal_vs_default:.2f} x "
             f"({FOCAL_DEFAULT_FACTOR} x longest side {self.longest_side_px} px){spread}",
@@ -711,8 +715,8 @@ class CalibrationReport:
 
 
 def calibration_report(rec: pycolmap.Reconstruction, total: int, model: str, reason: str,
-                       prior: CameraPrior | None, config: SfmConfig,
-                       notes: list[str] | tuple = ()) -> CalibrationReport:
+                       prior: CameraPrior | None, config: SfmConfig, notes: list[str] | tuple = (),
+                       sharing: str = "") -> CalibrationReport:
     """Measure a reconstruction's calibration and collect the warnings (the thresholds are module constants).
 
     Parameters
@@ -728,6 +732,8 @@ def calibration_report(rec: pycolmap.Reconstruction, total: int, model: str, rea
         ``fix_intrinsics`` and ``focal_probe`` are read.
     notes : sequence of str
         Remarks to carry into the report.
+    sharing : str
+        Why the photos share a camera or not (:func:`choose_camera_sharing`).
     """
     reg = list(rec.reg_image_ids())
     cam_ids = sorted({rec.images[i].camera_id for i in reg})
@@ -754,7 +760,8 @@ def calibration_report(rec: pycolmap.Reconstruction, total: int, model: str, rea
 
     if len(reg) < MIN_REGISTERED_FRACTION * total:
         warn("registered", f"only {len(reg)} of {total} photos registered (< {MIN_REGISTERED_FRACTION:.0%}): the "
-             "others had too few matches; take more photos between them, or try --single-camera")
+             "others had too few matches; take more photos between them"
+             + ("" if config.single_camera else ", or try --single-camera"))
     if vs_prior is not None and abs(vs_prior) > FOCAL_PRIOR_TOLERANCE:
         warn("focal-prior", f"the focal length {focal:.0f} px is {vs_prior:+.0%} off the prior {prior.focal_px:.0f} "
              f"px ({prior.source}; tolerance {FOCAL_PRIOR_TOLERANCE:.0%}): if the prior is right, rerun with "
@@ -790,8 +797,8 @@ def calibration_report(rec: pycolmap.Reconstruction, total: int, model: str, rea
     return CalibrationReport(
         registered=len(reg), total=total, camera_model=model, model_reason=reason,
         prior_source=prior.source if prior else None, prior_focal_px=prior.focal_px if prior else None,
-        fixed=bool(config.fix_intrinsics), cameras=len(cams), focal_px=focal, focal_spread=spread,
-        focal_vs_prior=vs_prior, longest_side_px=int(longest), focal_vs_default=float(vs_default),
+        fixed=bool(config.fix_intrinsics), cameras=len(cams), camera_sharing=sharing, focal_px=focal,
+        focal_spread=spread, focal_vs_prior=vs_prior, longest_side_px=int(longest), focal_vs_default=float(vs_default),
         focal_probe_rise=probe, distortion=float(dist), distortion_px=float(dist_px),
         reprojection_error_px=error, mean_track_length=track, points=int(rec.num_points3D()),
         observations_per_view=float(rec.compute_mean_observations_per_reg_image()) if reg else 0.0,
