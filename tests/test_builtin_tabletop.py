@@ -41,9 +41,9 @@ def _world_points(view) -> np.ndarray:
     return (pts - cam.t) @ cam.R
 
 
-def _in_room(points: np.ndarray, tol: float = 0.11) -> np.ndarray:
-    """Whether points lie in the room grown by ``tol`` metres (default: its 0.1 m walls, whose window
-    reveal a camera sees, plus 1 cm)."""
+def _in_room(points: np.ndarray, tol: float = 0.13) -> np.ndarray:
+    """Whether points lie in the room grown by ``tol`` metres (default: the window sill, which a camera
+    sees through the opening 0.12 m beyond the wall, plus 1 cm)."""
     hx, hy = CFG.room_half_size
     return ((np.abs(points[..., 0]) <= hx + tol) & (np.abs(points[..., 1]) <= hy + tol)
             & (points[..., 2] >= -tol) & (points[..., 2] <= CFG.room_height + tol))
