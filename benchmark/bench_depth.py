@@ -101,8 +101,9 @@ def main(argv=None) -> int:
     rows = []
     for size in args.sizes.split(","):
         for name in args.scenes.split(","):
-            rows += bench_scene(name, size, iterations, args.sources.split(","))
-            print(f"done: {name} {size}", file=sys.stderr, flush=True)
+            new = bench_scene(name, size, iterations, args.sources.split(","))
+            rows += new
+            print("\n".join(format_table(new).splitlines()[2:]), file=sys.stderr, flush=True)  # progress
     print(format_table(rows))
     if args.json:
         with open(args.json, "w") as f:

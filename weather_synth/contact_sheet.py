@@ -107,13 +107,13 @@ def find_settings(dataset: str | os.PathLike) -> list[tuple[str, Path, dict]]:
 
 
 def depth_label(manifest: dict) -> str | None:
-    """``"recon 0.88"``: a setting's depth source and mean depth consistency, or None when it used no depth."""
+    """``"depth recon 0.88"``: a setting's depth source and mean depth consistency, or None when it used no depth."""
     depth = (manifest.get("scene") or {}).get("depth")
     if not isinstance(depth, dict):
         return None
     mean = (depth.get("consistency") or {}).get("mean")
     src = str(depth.get("source", "?")).split(":", 1)[0]
-    return f"{src} {mean:.2f}" if isinstance(mean, (int, float)) else src
+    return f"depth {src} {mean:.2f}" if isinstance(mean, (int, float)) else f"depth {src}"
 
 
 def depth_lines(dataset: str | os.PathLike) -> list[str]:
