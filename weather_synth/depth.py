@@ -44,7 +44,6 @@ haze covers it with pure airlight as a real atmosphere does.
 from __future__ import annotations
 
 import functools
-import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,6 +55,7 @@ import numpy as np
 from nimbus.data.camera import Camera
 from nimbus.data.scene import Scene, View
 from nimbus.errors import NimbusError
+from nimbus.utils.fs import cache_root
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
@@ -135,12 +135,11 @@ class DepthConfig:
 def default_depth_cache() -> Path:
     """Where ``nimbus-synth degrade`` caches recon fits: ``$NIMBUS_CACHE/depth``, else ``~/.cache/nimbus/depth``.
 
-    The same cache root as the LPIPS weights (``benchmark.weights.cache_root``;
-    weather_synth cannot import benchmark).  A per-user cache, not an output:
-    the files are named by content, so any run of any scene may reuse them.
+    The same cache root as the LPIPS weights and undistorted images
+    (:func:`nimbus.utils.fs.cache_root`).  A per-user cache, not an output: the
+    files are named by content, so any run of any scene may reuse them.
     """
-    env = os.environ.get("NIMBUS_CACHE")
-    return (Path(env).expanduser() if env else Path.home() / ".cache" / "nimbus") / "depth"
+    return cache_root() / "depth"
 
 
 def sanitize_depth(depth: np.ndarray) -> np.ndarray:
