@@ -31,18 +31,18 @@ UP = (0.0, 0.0, 1.0)
 
 
 # --- material helpers ---------------------------------------------------------------------------
-def _tex_seed(seed: int, salt: int) -> int:
+def texture_seed(seed: int, salt: int) -> int:
     """An independent texture seed per (scene seed, material)."""
     return (seed * 7919 + salt * 104729) & 0x7FFFFFFF
 
 
-def _offset(seed: int, salt: int, dim: int) -> np.ndarray:
+def texture_offset(seed: int, salt: int, dim: int) -> np.ndarray:
     """A seed-dependent texture-space shift (metres), so seeds differ everywhere, not only in the hash."""
     cells = np.array([[seed, salt, k] for k in range(dim)])
     return (hash01(cells, 99) * 100.0).astype(np.float32)
 
 
-def _face_uv(p: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def face_uv(p: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Planar (u, v) coordinates on a face: vertical faces use (horizontal tangent, z), others (x, y)."""
     vertical = np.abs(n[:, 2]) < 0.5
     u = np.where(vertical, -n[:, 1] * p[:, 0] + n[:, 0] * p[:, 1], p[:, 0])
@@ -50,11 +50,11 @@ def _face_uv(p: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return u.astype(np.float32), v.astype(np.float32)
 
 
-def _xy(p: np.ndarray, off: np.ndarray, scale: float) -> np.ndarray:
+def coords_xy(p: np.ndarray, off: np.ndarray, scale: float) -> np.ndarray:
     return (p[:, :2] + off[:2]) * np.float32(scale)
 
 
-def _xyz(p: np.ndarray, off: np.ndarray, scale: float) -> np.ndarray:
+def coords_xyz(p: np.ndarray, off: np.ndarray, scale: float) -> np.ndarray:
     return (p + off[:3]) * np.float32(scale)
 
 
@@ -68,12 +68,12 @@ _STONES = np.array([(0.72, 0.62, 0.45), (0.38, 0.42, 0.46), (0.58, 0.57, 0.55), 
                     (0.82, 0.8, 0.72)], np.float32)
 
 
-def _pick(palette: np.ndarray, u: np.ndarray) -> np.ndarray:
+def pick(palette: np.ndarray, u: np.ndarray) -> np.ndarray:
     """Colour per point from a palette (K, 3) by a uniform value ``u`` in [0, 1)."""
     return palette[np.minimum((u * len(palette)).astype(np.int64), len(palette) - 1)]
 
 
-def _split(cond: np.ndarray, fn_true, fn_false, p: np.ndarray, n: np.ndarray) -> np.ndarray:
+def split_by(cond: np.ndarray, fn_true, fn_false, p: np.ndarray, n: np.ndarray) -> np.ndarray:
     """Evaluate one of two colour functions per point (each only on its own points: textures are costly)."""
     out = np.empty((len(p), 3), np.float32)
     for sel, fn in ((cond, fn_true), (~cond, fn_false)):
@@ -84,48 +84,48 @@ def _split(cond: np.ndarray, fn_true, fn_false, p: np.ndarray, n: np.ndarray) ->
 
 def grass_material(seed: int, patio_radius: float) -> Material:
     """Lawn with large colour patches, bare-earth spots and fine blades; flagstones inside ``patio_radius``."""
-    s = _tex_seed(seed, 1)
-    off = _offset(seed, 1, 3)
+    s = texture_seed(seed, 1)
+    off = texture_offset(seed, 1, 3)
 
     def lawn(p, n):
-        patches = fbm(_xy(p, off, 0.3), 3, s)
-        detail = fbm(_xy(p, off, 3.0), 3, s + 1)
-        blades = value_noise(_xy(p, off, 16.0), s + 2)
+        patches = fbm(coords_xy(p, off, 0.3), 3, s)
+        detail = fbm(coords_xy(p, off, 3.0), 3, s + 1)
+        blades = value_noise(coords_xy(p, off, 16.0), s + 2)
         col = mix((0.16, 0.33, 0.09), (0.42, 0.55, 0.17), patches)
         col = col * (0.55 + 0.6 * detail * (0.6 + 0.4 * blades))[:, None]
-        earth = smoothstep(0.58, 0.66, fbm(_xy(p, off, 0.8), 2, s + 3))
+        earth = smoothstep(0.58, 0.66, fbm(coords_xy(p, off, 0.8), 2, s + 3))
         col = mix(col, (0.42, 0.31, 0.2), 0.85 * earth * (0.6 + 0.4 * detail))
         # Flowers and fallen leaves: two sizes of scattered high-contrast blobs (what SIFT detects).
         for scale, salt in ((2.0, 6), (5.0, 8)):
-            cover, cell = spots(_xy(p, off, scale), s + salt, density=0.55)
-            col = mix(col, _pick(_FLOWERS, hash01(cell, s + salt + 7)), cover)
+            cover, cell = spots(coords_xy(p, off, scale), s + salt, density=0.55)
+            col = mix(col, pick(_FLOWERS, hash01(cell, s + salt + 7)), cover)
         return col
 
     def patio(p, n):
         # Flagstones of varied stone colours with grain and lichen spots, dark joints: distinctive corners.
         stone, sid = bricks(p[:, 0] + off[0], p[:, 1] + off[1], 0.45, 0.3, 0.035)
-        base = _pick(_STONES, hash01(sid, s + 4))
-        grain = fbm(_xy(p, off, 8.0), 3, s + 5)
+        base = pick(_STONES, hash01(sid, s + 4))
+        grain = fbm(coords_xy(p, off, 8.0), 3, s + 5)
         stone_col = base * (0.6 + 0.7 * grain)[:, None]
-        cover, cell = spots(_xy(p, off, 7.0), s + 6, density=0.4, radius=(0.1, 0.25))
+        cover, cell = spots(coords_xy(p, off, 7.0), s + 6, density=0.4, radius=(0.1, 0.25))
         stone_col = mix(stone_col, mix((0.2, 0.22, 0.12), (0.85, 0.8, 0.45), hash01(cell, s + 7)), 0.8 * cover)
         return mix((0.12, 0.11, 0.1), stone_col, stone)
 
     def albedo(p, n):
-        return _split(p[:, 0] ** 2 + p[:, 1] ** 2 < patio_radius ** 2, patio, lawn, p, n)
+        return split_by(p[:, 0] ** 2 + p[:, 1] ** 2 < patio_radius ** 2, patio, lawn, p, n)
 
     return Material(albedo)
 
 
 def wood_material(seed: int, salt: int, base=(0.55, 0.36, 0.2), dark=(0.3, 0.18, 0.09), rings: float = 9.0) -> Material:
     """Wood: stripes along x and y warped by noise (grain), view-independent."""
-    s = _tex_seed(seed, salt)
-    off = _offset(seed, salt, 3)
+    s = texture_seed(seed, salt)
+    off = texture_offset(seed, salt, 3)
 
     def albedo(p, n):
-        warp = fbm(_xyz(p, off, 1.5), 2, s)
+        warp = fbm(coords_xyz(p, off, 1.5), 2, s)
         g = 0.5 + 0.5 * np.sin(rings * (p[:, 0] + 0.7 * p[:, 1] + 0.4 * p[:, 2] + off[0]) + 6.0 * warp)
-        fine = value_noise(_xyz(p, off, 25.0), s + 1)
+        fine = value_noise(coords_xyz(p, off, 25.0), s + 1)
         return mix(dark, base, np.clip(0.7 * g + 0.3 * fine, 0, 1))
 
     return Material(albedo)
@@ -133,14 +133,14 @@ def wood_material(seed: int, salt: int, base=(0.55, 0.36, 0.2), dark=(0.3, 0.18,
 
 def brick_material(seed: int, salt: int, brick=(0.62, 0.27, 0.18), mortar=(0.78, 0.76, 0.7)) -> Material:
     """Red bricks with per-brick tint on vertical faces, stone caps on top faces."""
-    s = _tex_seed(seed, salt)
-    off = _offset(seed, salt, 3)
+    s = texture_seed(seed, salt)
+    off = texture_offset(seed, salt, 3)
 
     def albedo(p, n):
-        u, v = _face_uv(p, n)
+        u, v = face_uv(p, n)
         is_b, bid = bricks(u + off[0], v + off[1], 0.22, 0.075, 0.012)
         tint = hash01(bid, s)
-        grain = value_noise(_xyz(p, off, 30.0), s + 1)
+        grain = value_noise(coords_xyz(p, off, 30.0), s + 1)
         bcol = np.asarray(brick, np.float32) * (0.7 + 0.45 * tint)[:, None] * (0.85 + 0.2 * grain)[:, None]
         return mix(mortar, bcol, is_b)
 
@@ -150,17 +150,17 @@ def brick_material(seed: int, salt: int, brick=(0.62, 0.27, 0.18), mortar=(0.78,
 def foliage_material(seed: int, salt: int, light=(0.35, 0.55, 0.15), dark=(0.06, 0.2, 0.05),
                      flower=None) -> Material:
     """Leafy solid texture (3D fBm), optionally with sparse flower dots."""
-    s = _tex_seed(seed, salt)
-    off = _offset(seed, salt, 3)
+    s = texture_seed(seed, salt)
+    off = texture_offset(seed, salt, 3)
 
     def albedo(p, n):
-        leaves = fbm(_xyz(p, off, 6.0), 3, s)
+        leaves = fbm(coords_xyz(p, off, 6.0), 3, s)
         col = mix(dark, light, smoothstep(0.3, 0.7, leaves))
         # Fine leaf clusters: a higher-frequency, high-contrast layer.
-        fine = value_noise(_xyz(p, off, 22.0), s + 2)
+        fine = value_noise(coords_xyz(p, off, 22.0), s + 2)
         col = col * (0.55 + 0.8 * fine)[:, None]
         if flower is not None:
-            dots = smoothstep(0.7, 0.76, value_noise(_xyz(p, off, 14.0), s + 1))
+            dots = smoothstep(0.7, 0.76, value_noise(coords_xyz(p, off, 14.0), s + 1))
             col = mix(col, flower, dots)
         return col
 
@@ -168,13 +168,13 @@ def foliage_material(seed: int, salt: int, light=(0.35, 0.55, 0.15), dark=(0.06,
 
 
 def bark_material(seed: int, salt: int) -> Material:
-    s = _tex_seed(seed, salt)
-    off = _offset(seed, salt, 3)
+    s = texture_seed(seed, salt)
+    off = texture_offset(seed, salt, 3)
 
     def albedo(p, n):
         ang = np.arctan2(n[:, 1], n[:, 0])
         ridges = value_noise(np.stack([ang * 4.0, (p[:, 2] + off[2]) * 3.0], axis=1), s)
-        fine = value_noise(_xyz(p, off, 20.0), s + 1)
+        fine = value_noise(coords_xyz(p, off, 20.0), s + 1)
         return mix((0.17, 0.12, 0.08), (0.45, 0.36, 0.27), 0.7 * ridges + 0.3 * fine)
 
     return Material(albedo)
@@ -182,12 +182,12 @@ def bark_material(seed: int, salt: int) -> Material:
 
 def checker_material(seed: int, salt: int, a, b, scale: float) -> Material:
     """3D checker (a beach ball / tablecloth look) with slight noise."""
-    s = _tex_seed(seed, salt)
-    off = _offset(seed, salt, 3)
+    s = texture_seed(seed, salt)
+    off = texture_offset(seed, salt, 3)
 
     def albedo(p, n):
-        c = checker(_xyz(p, off, scale))
-        noise = value_noise(_xyz(p, off, scale * 4.0), s)
+        c = checker(coords_xyz(p, off, scale))
+        noise = value_noise(coords_xyz(p, off, scale * 4.0), s)
         return mix(a, b, c) * (0.88 + 0.2 * noise)[:, None]
 
     return Material(albedo)
@@ -195,11 +195,11 @@ def checker_material(seed: int, salt: int, a, b, scale: float) -> Material:
 
 def painted_material(seed: int, salt: int, color, stripes=None, stripe_freq: float = 6.0) -> Material:
     """Painted surface: a base colour, grime noise and optional horizontal stripes of a second colour."""
-    s = _tex_seed(seed, salt)
-    off = _offset(seed, salt, 3)
+    s = texture_seed(seed, salt)
+    off = texture_offset(seed, salt, 3)
 
     def albedo(p, n):
-        grime = fbm(_xyz(p, off, 4.0), 3, s)
+        grime = fbm(coords_xyz(p, off, 4.0), 3, s)
         col = np.broadcast_to(np.asarray(color, np.float32), p.shape) * (0.7 + 0.45 * grime)[:, None]
         if stripes is not None:
             band = (np.floor((p[:, 2] + off[2]) * stripe_freq).astype(np.int64) & 1).astype(np.float32)
@@ -215,8 +215,8 @@ def sky_backdrop_material(seed: int, salt: int, center, radius: float, horizon: 
     ``horizon`` is ``"hills"`` (rolling green/blue hills over patchwork fields) or
     ``"skyline"`` (a distant city skyline of blocks over grey ground).
     """
-    s = _tex_seed(seed, salt)
-    off = _offset(seed, salt, 3)
+    s = texture_seed(seed, salt)
+    off = texture_offset(seed, salt, 3)
     c = np.asarray(center, np.float32)
 
     def sky(p, n):
@@ -230,9 +230,9 @@ def sky_backdrop_material(seed: int, salt: int, center, radius: float, horizon: 
 
     def hills(p, n):
         e = (p[:, 2] - c[2]) / np.float32(radius)
-        tex = fbm(_xyz(p, off, 0.25), 4, s + 2)
+        tex = fbm(coords_xyz(p, off, 0.25), 4, s + 2)
         col = mix((0.12, 0.25, 0.14), (0.5, 0.6, 0.42), tex)
-        woods = spots(_xyz(p, off, 0.6)[:, [0, 2]] + _xyz(p, off, 0.6)[:, [1]], s + 4, density=0.5)[0]
+        woods = spots(coords_xyz(p, off, 0.6)[:, [0, 2]] + coords_xyz(p, off, 0.6)[:, [1]], s + 4, density=0.5)[0]
         col = mix(col, (0.08, 0.16, 0.08), 0.8 * woods)  # copses of trees: distant blobs
         col = mix(col, (0.55, 0.62, 0.7), smoothstep(0.0, 0.15, e))  # aerial perspective
         _, fid = bricks(p[:, 0] * 0.08 + off[0], p[:, 1] * 0.08 + off[1], 1.0, 0.7, 0.04)
@@ -248,7 +248,7 @@ def sky_backdrop_material(seed: int, salt: int, center, radius: float, horizon: 
         win = checker(np.stack([(az + np.pi) * 400.0, e * 250.0], axis=1)) * (hash01(block, s + 3) > 0.4)
         col = mix((0.36, 0.38, 0.44), (0.6, 0.6, 0.62), tone) * (0.85 + 0.2 * win)[:, None]
         col = mix(col, (0.62, 0.66, 0.74), 0.35)  # distant: washed out
-        ground = mix((0.35, 0.34, 0.32), (0.5, 0.48, 0.45), fbm(_xy(p, off, 0.2), 3, s + 4))
+        ground = mix((0.35, 0.34, 0.32), (0.5, 0.48, 0.45), fbm(coords_xy(p, off, 0.2), 3, s + 4))
         return mix(col, ground, (e < 0).astype(np.float32))
 
     def albedo(p, n):
@@ -261,15 +261,15 @@ def sky_backdrop_material(seed: int, salt: int, center, radius: float, horizon: 
             low = e < 0.15  # the highest possible hill top
             top = np.full(len(p), -1.0, np.float32)
             top[low] = 0.03 + 0.12 * fbm(circle[low] * np.float32(2.5) + off[:2], 4, s + 1)
-            return _split(e < top, hills, sky, p, n)
+            return split_by(e < top, hills, sky, p, n)
         block = np.floor((np.arctan2(w[:, 1], w[:, 0]) + np.pi) * 40.0).astype(np.int64)[:, None]
         top = 0.02 + 0.1 * hash01(block, s + 1) ** 2
-        return _split(e < top, skyline, sky, p, n)
+        return split_by(e < top, skyline, sky, p, n)
 
     return Material(albedo, emissive=True)
 
 
-def _look_at(eye, target, width: int, height: int, fov_x_deg: float) -> Camera:
+def look_at(eye, target, width: int, height: int, fov_x_deg: float) -> Camera:
     return Camera.look_at(eye, target, UP, width, height, fov_x_deg)
 
 
@@ -403,7 +403,7 @@ class GardenConfig:
             z = self.orbit_height + self.height_wobble * np.sin(2 * a + phase) + rng.normal(0, self.pose_jitter)
             eye = np.array([r * np.cos(a), r * np.sin(a), z])
             target = np.asarray(self.target) + rng.normal(0, self.pose_jitter, 3)
-            cams.append(_look_at(eye, target, width, height, self.fov_x_deg))
+            cams.append(look_at(eye, target, width, height, self.fov_x_deg))
         return cams
 
 
@@ -457,20 +457,20 @@ class StreetConfig:
         def j(v):
             return float(v + rng.normal(0.0, self.object_jitter))
 
-        s = _tex_seed(seed, 20)
-        off = _offset(seed, 20, 3)
+        s = texture_seed(seed, 20)
+        off = texture_offset(seed, 20, 3)
 
         def road(p, n):
             x, y = p[:, 0], p[:, 1]
-            grain = fbm(_xy(p, off, 2.0), 3, s)
-            speck = value_noise(_xy(p, off, 18.0), s + 1)
+            grain = fbm(coords_xy(p, off, 2.0), 3, s)
+            speck = value_noise(coords_xy(p, off, 18.0), s + 1)
             col = mix((0.16, 0.16, 0.17), (0.38, 0.37, 0.36), 0.6 * grain + 0.4 * speck)
-            patches = smoothstep(0.6, 0.65, fbm(_xy(p, off, 0.4), 2, s + 2))
+            patches = smoothstep(0.6, 0.65, fbm(coords_xy(p, off, 0.4), 2, s + 2))
             col = mix(col, (0.1, 0.1, 0.11), 0.7 * patches)
             # Light gravel and dark stains: scattered blobs of two sizes.
-            cover, cell = spots(_xy(p, off, 1.5), s + 5, density=0.5)
+            cover, cell = spots(coords_xy(p, off, 1.5), s + 5, density=0.5)
             col = mix(col, mix((0.05, 0.05, 0.06), (0.62, 0.6, 0.56), hash01(cell, s + 6) > 0.5), cover)
-            cover, cell = spots(_xy(p, off, 5.0), s + 7, density=0.5)
+            cover, cell = spots(coords_xy(p, off, 5.0), s + 7, density=0.5)
             col = mix(col, mix((0.08, 0.08, 0.08), (0.7, 0.68, 0.62), hash01(cell, s + 8) > 0.4), cover)
             dashes = (np.abs(x) < 0.08) & (np.mod(y + off[1], 4.0) < 2.0)
             zebra = (y > 9.0) & (y < 12.0) & (np.mod(x + 10.0, 1.0) < 0.5) & (np.abs(x) < rw - 0.3)
@@ -479,20 +479,20 @@ class StreetConfig:
             return mix(col, (0.9, 0.9, 0.86), paint)
 
         def pavement(p, n):
-            u, v = _face_uv(p, n)
+            u, v = face_uv(p, n)
             tile, tid = bricks(v + off[1], u + off[0], 0.5, 0.5, 0.02)
             tint = hash01(tid, s + 3)
-            grain = value_noise(_xyz(p, off, 12.0), s + 4)
+            grain = value_noise(coords_xyz(p, off, 12.0), s + 4)
             col = mix((0.52, 0.5, 0.47), (0.74, 0.7, 0.64), tint) * (0.8 + 0.3 * grain)[:, None]
             return mix((0.3, 0.29, 0.28), col, tile)
 
         def facade_factory(salt: int):
             base_tone = rng.random()
-            s2 = _tex_seed(seed, salt)
-            off2 = _offset(seed, salt, 3)
+            s2 = texture_seed(seed, salt)
+            off2 = texture_offset(seed, salt, 3)
 
             def facade(p, n):
-                u, v = _face_uv(p, n)
+                u, v = face_uv(p, n)
                 wall_a = mix((0.72, 0.66, 0.55), (0.62, 0.36, 0.26), np.full(len(p), base_tone, np.float32))
                 is_b, bid = bricks(u + off2[0], v, 0.3, 0.1, 0.015)
                 tint = hash01(bid, s2)
@@ -504,7 +504,8 @@ class StreetConfig:
                 frame = window & ((fu < 0.78) | (fu > 1.82) | (fv < 0.08) | (fv > 1.42) | (np.abs(fu - 1.3) < 0.04))
                 col = wall
                 # Glass reflects a blurry sky: noise, evaluated on window pixels only.
-                col[window] = mix((0.12, 0.16, 0.24), (0.5, 0.6, 0.72), fbm(_xyz(p[window], off2, 0.7), 3, s2 + 1))
+                col[window] = mix((0.12, 0.16, 0.24), (0.5, 0.6, 0.72),
+                                  fbm(coords_xyz(p[window], off2, 0.7), 3, s2 + 1))
                 return mix(col, (0.88, 0.87, 0.83), frame.astype(np.float32))
 
             return Material(facade)
@@ -591,5 +592,5 @@ class StreetConfig:
                 z = self.eye_height + (0.5 - r / max(rows - 1, 1)) * self.grid_height
                 eye = np.array([x, 0.0, z]) + rng.normal(0, self.pose_jitter, 3)
                 target = np.array([0.0, self.look_distance, self.eye_height]) + rng.normal(0, 10 * self.pose_jitter, 3)
-                cams.append(_look_at(eye, target, width, height, self.fov_x_deg))
+                cams.append(look_at(eye, target, width, height, self.fov_x_deg))
         return cams

@@ -24,9 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from nimbus.data.builtin.raycast import Backdrop, Box, Capsule, Cylinder, Lighting, Material, Rect, Sphere, World
-from nimbus.data.builtin.scenes import (_face_uv, _look_at, _offset, _pick, _split, _tex_seed, _xy, _xyz, bark_material,
-                                        brick_material, checker_material, painted_material, sky_backdrop_material,
-                                        wood_material)
+from nimbus.data.builtin.scenes import (bark_material, brick_material, checker_material, coords_xy, coords_xyz,
+                                        face_uv, look_at, painted_material, pick, sky_backdrop_material, split_by,
+                                        texture_offset, texture_seed, wood_material)
 from nimbus.data.builtin.textures import bricks, fbm, hash01, mix, smoothstep, spots, value_noise
 from nimbus.data.camera import Camera
 
@@ -59,18 +59,18 @@ def plank_material(seed: int, salt: int, length: float = 1.3, width: float = 0.1
     ``spot_scale`` is the number of knot cells per metre (stains are 3 times finer): more for
     surfaces seen from close by.
     """
-    s = _tex_seed(seed, salt)
-    off = _offset(seed, salt, 3)
+    s = texture_seed(seed, salt)
+    off = texture_offset(seed, salt, 3)
 
     def albedo(p, n):
         plank, pid = bricks(p[:, 0] + off[0], p[:, 1] + off[1], length, width, 0.006)
         tint = hash01(pid, s)
-        warp = fbm(_xy(p, off, 3.0) * np.float32([0.3, 4.0]), 2, s + 1)
+        warp = fbm(coords_xy(p, off, 3.0) * np.float32([0.3, 4.0]), 2, s + 1)
         grain = 0.5 + 0.5 * np.sin(90.0 * (p[:, 1] + off[1]) + 8.0 * warp)
         col = mix((0.36, 0.22, 0.12), (0.72, 0.52, 0.32), 0.55 * tint + 0.3 * grain + 0.15 * warp)
-        knots, _ = spots(_xy(p, off, spot_scale), s + 2, density=0.5, radius=(0.08, 0.2))
+        knots, _ = spots(coords_xy(p, off, spot_scale), s + 2, density=0.5, radius=(0.08, 0.2))
         col = mix(col, (0.18, 0.1, 0.05), 0.85 * knots)
-        stains, cell = spots(_xy(p, off, 3.0 * spot_scale), s + 3, density=0.3)
+        stains, cell = spots(coords_xy(p, off, 3.0 * spot_scale), s + 3, density=0.3)
         col = mix(col, mix((0.16, 0.1, 0.06), (0.85, 0.72, 0.52), hash01(cell, s + 4) > 0.5), 0.6 * stains)
         return mix((0.12, 0.08, 0.05), col, plank)
 
@@ -84,25 +84,25 @@ def wall_material(seed: int, salt: int, paper, motif, panel=(0.42, 0.5, 0.44), d
     two sizes: what SIFT detects) and faint stains; below: vertical boards in ``panel`` with
     grooves, under a light dado rail.
     """
-    s = _tex_seed(seed, salt)
-    off = _offset(seed, salt, 3)
+    s = texture_seed(seed, salt)
+    off = texture_offset(seed, salt, 3)
 
     def paper_fn(p, n):
-        u, v = _face_uv(p, n)
+        u, v = face_uv(p, n)
         uv = np.stack([u + off[0], v + off[1]], axis=1)
         stripe = (np.floor(uv[:, 0] * 8.0).astype(np.int64) & 1).astype(np.float32)
         col = np.broadcast_to(np.asarray(paper, np.float32), p.shape) * (0.88 + 0.12 * stripe)[:, None]
         for scale, salt2 in ((6.0, 3), (14.0, 5)):
             cover, cell = spots(uv * np.float32(scale), s + salt2, density=0.6, radius=(0.15, 0.28))
             col = mix(col, np.asarray(motif, np.float32) * (0.7 + 0.5 * hash01(cell, s + salt2 + 1))[:, None], cover)
-        stains = fbm(_xyz(p, off, 1.5), 3, s + 1)
+        stains = fbm(coords_xyz(p, off, 1.5), 3, s + 1)
         return col * (0.8 + 0.3 * stains)[:, None]
 
     def panel_fn(p, n):
-        u, v = _face_uv(p, n)
+        u, v = face_uv(p, n)
         board = np.mod(u + off[0], 0.14)
         groove = (board < 0.008).astype(np.float32)
-        paint = fbm(_xyz(p, off, 6.0), 3, s + 6) * 0.6 + 0.4 * value_noise(_xyz(p, off, 40.0), s + 7)
+        paint = fbm(coords_xyz(p, off, 6.0), 3, s + 6) * 0.6 + 0.4 * value_noise(coords_xyz(p, off, 40.0), s + 7)
         tint = hash01(np.floor((u + off[0]) / 0.14).astype(np.int64)[:, None], s + 8)
         col = np.broadcast_to(np.asarray(panel, np.float32), p.shape) * (0.65 + 0.25 * tint + 0.35 * paint)[:, None]
         col = mix(col, (0.12, 0.12, 0.1), 0.8 * groove)
@@ -115,21 +115,21 @@ def wall_material(seed: int, salt: int, paper, motif, panel=(0.42, 0.5, 0.44), d
         return mix(col, (0.85, 0.82, 0.74), rail)
 
     def albedo(p, n):
-        return _split(p[:, 2] > dado, paper_fn, panel_fn, p, n)
+        return split_by(p[:, 2] > dado, paper_fn, panel_fn, p, n)
 
     return Material(albedo)
 
 
 def ceiling_material(seed: int, salt: int) -> Material:
     """Off-white plaster with trowel marks and a square coffer grid (textured: SfM sees it from below)."""
-    s = _tex_seed(seed, salt)
-    off = _offset(seed, salt, 3)
+    s = texture_seed(seed, salt)
+    off = texture_offset(seed, salt, 3)
 
     def albedo(p, n):
-        trowel = fbm(_xy(p, off, 2.0), 4, s)
+        trowel = fbm(coords_xy(p, off, 2.0), 4, s)
         cell, _ = bricks(p[:, 0] + off[0], p[:, 1] + off[1], 0.8, 0.8, 0.05)
         col = mix((0.62, 0.6, 0.55), (0.9, 0.88, 0.82), trowel)
-        flecks, _ = spots(_xy(p, off, 6.0), s + 1, density=0.4)
+        flecks, _ = spots(coords_xy(p, off, 6.0), s + 1, density=0.4)
         col = mix(col, (0.45, 0.42, 0.38), 0.7 * flecks)
         return mix((0.5, 0.42, 0.32), col, cell)
 
@@ -138,8 +138,8 @@ def ceiling_material(seed: int, salt: int) -> Material:
 
 def rug_material(seed: int, salt: int, center, half_size) -> Material:
     """A knotted rug: nested borders and a diamond field in four colours, with wool noise."""
-    s = _tex_seed(seed, salt)
-    off = _offset(seed, salt, 3)
+    s = texture_seed(seed, salt)
+    off = texture_offset(seed, salt, 3)
     c = np.asarray(center, np.float32)[:2]
     h = np.asarray(half_size, np.float32)[:2]
 
@@ -150,9 +150,9 @@ def rug_material(seed: int, salt: int, center, half_size) -> Material:
         diamond = np.floor(np.abs(q[:, 0] * h[0] * 6.0 + off[0]) + np.abs(q[:, 1] * h[1] * 6.0 + off[1]))
         idx = np.where(band < 3, band, 3 + (diamond.astype(np.int64) % 3))
         col = _RUG[np.mod(idx, len(_RUG))]
-        wool = value_noise(_xy(p, off, 90.0), s)
-        motifs, cell = spots(_xy(p, off, 9.0), s + 1, density=0.5)
-        col = mix(col, _pick(_RUG, hash01(cell, s + 2)), motifs * (band >= 3))
+        wool = value_noise(coords_xy(p, off, 90.0), s)
+        motifs, cell = spots(coords_xy(p, off, 9.0), s + 1, density=0.5)
+        col = mix(col, pick(_RUG, hash01(cell, s + 2)), motifs * (band >= 3))
         return col * (0.75 + 0.35 * wool)[:, None]
 
     return Material(albedo)
@@ -160,15 +160,15 @@ def rug_material(seed: int, salt: int, center, half_size) -> Material:
 
 def printed_cloth_material(seed: int, salt: int, base=(0.86, 0.83, 0.74)) -> Material:
     """A printed linen runner: flowers of two sizes in the rug's colours on a woven ground."""
-    s = _tex_seed(seed, salt)
-    off = _offset(seed, salt, 3)
+    s = texture_seed(seed, salt)
+    off = texture_offset(seed, salt, 3)
 
     def albedo(p, n):
-        weave = value_noise(_xy(p, off, 150.0), s)
+        weave = value_noise(coords_xy(p, off, 150.0), s)
         col = np.broadcast_to(np.asarray(base, np.float32), p.shape) * (0.85 + 0.2 * weave)[:, None]
         for scale, salt2 in ((18.0, 1), (45.0, 3)):
-            cover, cell = spots(_xy(p, off, scale), s + salt2, density=0.55)
-            col = mix(col, _pick(_RUG, hash01(cell, s + salt2 + 1)), cover)
+            cover, cell = spots(coords_xy(p, off, scale), s + salt2, density=0.55)
+            col = mix(col, pick(_RUG, hash01(cell, s + salt2 + 1)), cover)
         return col
 
     return Material(albedo)
@@ -176,14 +176,14 @@ def printed_cloth_material(seed: int, salt: int, base=(0.86, 0.83, 0.74)) -> Mat
 
 def fabric_material(seed: int, salt: int, a, b) -> Material:
     """Woven plaid upholstery: crossing bands of two colours with a fine weave."""
-    s = _tex_seed(seed, salt)
-    off = _offset(seed, salt, 3)
+    s = texture_seed(seed, salt)
+    off = texture_offset(seed, salt, 3)
 
     def albedo(p, n):
-        q = _xyz(p, off, 1.0)
+        q = coords_xyz(p, off, 1.0)
         bands = [(np.floor(q[:, k] * 7.0).astype(np.int64) % 3 == 0).astype(np.float32) for k in range(3)]
         plaid = np.clip(bands[0] + bands[1] + bands[2], 0.0, 2.0) * 0.5
-        weave = value_noise(_xyz(p, off, 120.0), s)
+        weave = value_noise(coords_xyz(p, off, 120.0), s)
         return mix(a, b, plaid) * (0.75 + 0.35 * weave)[:, None]
 
     return Material(albedo)
@@ -191,17 +191,17 @@ def fabric_material(seed: int, salt: int, a, b) -> Material:
 
 def painting_material(seed: int, salt: int, palette) -> Material:
     """An abstract oil painting: colour fields from fBm, brush-stroke noise, a few bright dabs."""
-    s = _tex_seed(seed, salt)
-    off = _offset(seed, salt, 3)
+    s = texture_seed(seed, salt)
+    off = texture_offset(seed, salt, 3)
     pal = np.asarray(palette, np.float32)
 
     def albedo(p, n):
-        q = _xyz(p, off, 3.0)
+        q = coords_xyz(p, off, 3.0)
         field = fbm(q, 3, s)
-        col = _pick(pal, np.clip(field * 1.6 - 0.3, 0.0, 0.999))
-        strokes = value_noise(_xyz(p, off, 60.0) * np.float32([1.0, 1.0, 0.25]), s + 1)
+        col = pick(pal, np.clip(field * 1.6 - 0.3, 0.0, 0.999))
+        strokes = value_noise(coords_xyz(p, off, 60.0) * np.float32([1.0, 1.0, 0.25]), s + 1)
         dabs, cell = spots(np.stack([q[:, 0] + q[:, 1], q[:, 2]], axis=1) * np.float32(4.0), s + 2, density=0.4)
-        col = mix(col, _pick(pal, hash01(cell, s + 3)) * 1.2, dabs)
+        col = mix(col, pick(pal, hash01(cell, s + 3)) * 1.2, dabs)
         return col * (0.8 + 0.3 * strokes)[:, None]
 
     return Material(albedo)
@@ -209,16 +209,16 @@ def painting_material(seed: int, salt: int, palette) -> Material:
 
 def glaze_material(seed: int, salt: int, color=(0.22, 0.36, 0.42)) -> Material:
     """Glazed stoneware: a blue-green glaze pooling darker in bands, with crackle and iron speckles."""
-    s = _tex_seed(seed, salt)
-    off = _offset(seed, salt, 3)
+    s = texture_seed(seed, salt)
+    off = texture_offset(seed, salt, 3)
 
     def albedo(p, n):
-        pool = fbm(_xyz(p, off, 25.0), 3, s)
+        pool = fbm(coords_xyz(p, off, 25.0), 3, s)
         band = 0.5 + 0.5 * np.sin((p[:, 2] + off[2]) * 160.0 + 4.0 * pool)
         col = np.broadcast_to(np.asarray(color, np.float32), p.shape) * (0.6 + 0.5 * pool + 0.2 * band)[:, None]
-        crackle = smoothstep(0.46, 0.5, value_noise(_xyz(p, off, 110.0), s + 1))
+        crackle = smoothstep(0.46, 0.5, value_noise(coords_xyz(p, off, 110.0), s + 1))
         col = mix(col, (0.85, 0.84, 0.78), 0.35 * crackle * (1 - crackle) * 4.0)
-        speck = smoothstep(0.8, 0.85, value_noise(_xyz(p, off, 260.0), s + 2))
+        speck = smoothstep(0.8, 0.85, value_noise(coords_xyz(p, off, 260.0), s + 2))
         return mix(col, (0.18, 0.1, 0.05), speck)
 
     return Material(albedo)
@@ -226,15 +226,15 @@ def glaze_material(seed: int, salt: int, color=(0.22, 0.36, 0.42)) -> Material:
 
 def leaf_material(seed: int, salt: int) -> Material:
     """Bonsai foliage: clusters of small leaves, a few millimetres across (fine, high-contrast detail)."""
-    s = _tex_seed(seed, salt)
-    off = _offset(seed, salt, 3)
+    s = texture_seed(seed, salt)
+    off = texture_offset(seed, salt, 3)
 
     def albedo(p, n):
-        cluster = fbm(_xyz(p, off, 30.0), 2, s)
+        cluster = fbm(coords_xyz(p, off, 30.0), 2, s)
         col = mix((0.05, 0.17, 0.04), (0.36, 0.56, 0.14), smoothstep(0.3, 0.7, cluster))
-        leaves = value_noise(_xyz(p, off, 220.0), s + 1)
+        leaves = value_noise(coords_xyz(p, off, 220.0), s + 1)
         col = col * (0.45 + 0.9 * leaves)[:, None]
-        tips = smoothstep(0.74, 0.8, value_noise(_xyz(p, off, 140.0), s + 2))
+        tips = smoothstep(0.74, 0.8, value_noise(coords_xyz(p, off, 140.0), s + 2))
         return mix(col, (0.62, 0.72, 0.28), tips)  # new growth: pale tips
 
     return Material(albedo)
@@ -242,24 +242,24 @@ def leaf_material(seed: int, salt: int) -> Material:
 
 def soil_material(seed: int, salt: int) -> Material:
     """Bonsai soil: dark grit with pale akadama grains."""
-    s = _tex_seed(seed, salt)
-    off = _offset(seed, salt, 3)
+    s = texture_seed(seed, salt)
+    off = texture_offset(seed, salt, 3)
 
     def albedo(p, n):
-        grit = value_noise(_xyz(p, off, 300.0), s)
+        grit = value_noise(coords_xyz(p, off, 300.0), s)
         col = mix((0.12, 0.08, 0.05), (0.3, 0.22, 0.14), grit)
-        grains, cell = spots(_xy(p, off, 120.0), s + 1, density=0.45)
+        grains, cell = spots(coords_xy(p, off, 120.0), s + 1, density=0.45)
         return mix(col, mix((0.5, 0.33, 0.2), (0.7, 0.55, 0.38), hash01(cell, s + 2)), grains)
 
     return Material(albedo)
 
 
 def moss_material(seed: int, salt: int) -> Material:
-    s = _tex_seed(seed, salt)
-    off = _offset(seed, salt, 3)
+    s = texture_seed(seed, salt)
+    off = texture_offset(seed, salt, 3)
 
     def albedo(p, n):
-        tuft = fbm(_xyz(p, off, 150.0), 2, s)
+        tuft = fbm(coords_xyz(p, off, 150.0), 2, s)
         return mix((0.12, 0.22, 0.05), (0.45, 0.58, 0.16), tuft)
 
     return Material(albedo)
@@ -553,5 +553,5 @@ class TabletopConfig:
             eye = centre + dist * np.array([np.cos(elev) * np.cos(a), np.cos(elev) * np.sin(a), np.sin(elev)])
             eye = eye + rng.normal(0, self.pose_jitter, 3)
             target = centre + rng.normal(0, self.pose_jitter, 3)
-            cams.append(_look_at(eye, target, width, height, self.fov_x_deg))
+            cams.append(look_at(eye, target, width, height, self.fov_x_deg))
         return cams
