@@ -18,9 +18,8 @@ import warnings
 
 from benchmark.grid import (DEFAULT_PRESET, DEFAULT_SIZE, CellOptions, build_cells, make_executor,
                             resolve_methods, run_grid)
-from benchmark.lpips import LPIPS_NETS
-from benchmark.metrics import SSIM_PROTOCOLS
 from nimbus.errors import NimbusError
+from nimbus.metrics import LPIPS_NETS, SSIM_PROTOCOLS
 
 HELP = "run the benchmark grid (scenes x weathers x methods x presets x seeds), resumable, locally or on Dask"
 EXAMPLE = "nimbus-bench run --scenes garden --weathers H,R --methods 3dgs --preset tiny --jobs 2"

@@ -58,9 +58,8 @@ from typing import Callable, Sequence
 import numpy as np
 
 from benchmark.grid import DEFAULT_PRESET, DEFAULT_SIZE, Cell
-from benchmark.lpips import LPIPS_NETS
-from benchmark.metrics import SSIM_PROTOCOLS
 from nimbus.errors import NimbusError
+from nimbus.metrics import LPIPS_NETS, SSIM_PROTOCOLS
 
 HELP = ("sweep the knobs that cost time (iterations, image scale, K, grid, SH degree, components): "
         "table + Pareto plot")
