@@ -206,8 +206,8 @@ def test_torch_bad_input_is_a_clear_error():
         psnr(pred[:10], gt)
     with pytest.raises(NimbusError, match="mask shape"):
         ssim(pred, gt, mask=mask[:10])
-    with pytest.raises(NimbusError, match="at least 11x11"):
-        ssim(pred[:8, :8], gt[:8, :8])
+    # the zero-padded 3dgs map needs no full window (training evaluated small images so before)
+    assert ssim(pred[:8, :8], gt[:8, :8]) < 1
 
 
 # --- score_images ----------------------------------------------------------------------------

@@ -398,9 +398,9 @@ def _ssim_batch(a: np.ndarray, b: np.ndarray, proto: SSIMProtocol, mask: np.ndar
 
 
 def _check_ssim_size(shape: tuple[int, ...]) -> None:
-    if min(shape[-3], shape[-2]) < SSIM_WINDOW:
+    if min(shape[1], shape[2]) < SSIM_WINDOW:
         raise NimbusError(f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels, got "
-                          f"{shape[-2]}x{shape[-3]}")
+                          f"{shape[2]}x{shape[1]}")
 
 
 def structural_similarity(pred: Any, gt: Any, *, protocol: str = "3dgs", quantize: bool = True, mask: Any = None):
@@ -409,7 +409,7 @@ def structural_similarity(pred: Any, gt: Any, *, protocol: str = "3dgs", quantiz
     Parameters
     ----------
     pred, gt : ndarray (H, W, 3) or (B, H, W, 3), or Tensor (H, W, 3); float in [0, 1]
-        H and W at least 11 (the window).  See the module docstring for the numpy and torch paths.
+        Numpy: H and W at least 11 (the window).  See the module docstring for the numpy and torch paths.
     protocol : {"3dgs", "skimage", "dmpix"}
         See the module docstring; ``"3dgs"`` is the paper's and the only one for torch tensors.
     quantize : bool
@@ -428,8 +428,7 @@ def structural_similarity(pred: Any, gt: Any, *, protocol: str = "3dgs", quantiz
         if proto.name != "3dgs":
             raise NimbusError(f"SSIM of torch tensors uses the 3dgs protocol only, not {proto.name!r}; "
                               "pass numpy arrays for the others")
-        a, b = _torch_pair(pred, gt, quantize, mask)
-        _check_ssim_size(a.shape)
+        a, b = _torch_pair(pred, gt, quantize, mask)  # any size: the zero-padded map needs no full window
         return float(mean_ssim(a, b, mask))
     a, b, single = as_batches(pred, gt, quantize)
     _check_ssim_size(a.shape)
