@@ -300,9 +300,9 @@ def to_csv(tables: Sequence[ComparisonTable]) -> str:
     return buf.getvalue()
 
 
-#: The paper's reported numbers (``tables/reference/*.csv``, transcribed from ``nimbusgs.tex``); the
-#: ablation and runtime tables' are in its ``ablations/`` folder (:mod:`benchmark.ablation_tables`).
-PAPER_REFERENCE_DIR = Path(__file__).resolve().parents[1] / "tables" / "reference"
+#: The paper's reported numbers (package data, transcribed from ``nimbusgs.tex``); the ablation and
+#: runtime tables' are in its ``ablations/`` folder (:mod:`benchmark.ablation_tables`).
+from benchmark.data import PAPER_DIR as PAPER_REFERENCE_DIR  # noqa: E402
 
 
 def paper_tables(folder: str | Path = PAPER_REFERENCE_DIR) -> dict[str, ComparisonTable]:

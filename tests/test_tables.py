@@ -208,11 +208,9 @@ def test_reference_check_and_update(store_root, tmp_path, capsys):
 
 def test_paper_reference_tables_and_their_marks():
     """The transcribed paper tables are complete, and our best / second-best rule reproduces the paper's marks."""
-    from pathlib import Path
-
+    from benchmark.data import PAPER_DIR as folder
     from benchmark.tables import DECIMALS, HIGHER_IS_BETTER
 
-    folder = Path(__file__).resolve().parents[1] / "tables" / "reference"
     labels = {}
     disagree = []
     for f in sorted(folder.glob("*.csv")):
