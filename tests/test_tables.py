@@ -10,7 +10,10 @@ import pytest
 
 from benchmark.cli import TOOL
 from benchmark.store import ResultsStore, load_results
-from benchmark.tables import comparison_tables, rank_marks, summary_table, to_csv, to_latex, to_markdown
+from benchmark.tables.comparison import tables as comparison_tables
+from benchmark.tables.model import rank_marks
+from benchmark.tables.summary import summary_table
+from benchmark.tables.writer import to_csv, to_latex, to_markdown
 from nimbus.cli_util import run_cli
 from nimbus.errors import NimbusError
 
@@ -50,7 +53,7 @@ def store_root(tmp_path):
 
 @pytest.fixture
 def tables(store_root):
-    return {t.weather: t for t in comparison_tables(load_results(store_root), ["nimbus", "3dgs"])}
+    return {t.layout: t for t in comparison_tables(load_results(store_root), ["nimbus", "3dgs"])[0]}
 
 
 def test_rank_marks():
@@ -65,14 +68,14 @@ def test_rank_marks():
 def test_tables_from_store(tables):
     assert list(tables) == ["H", "R"]  # error-only setting S has no table
     h = tables["H"]
-    assert h.methods == ["nimbus", "3dgs", "restore+3dgs"] and h.scenes == ["garden", "street"]
-    assert h.values[("nimbus", "Average", "psnr")] == pytest.approx(22.0)
+    assert h.blocks[0].labels == ["nimbus", "3dgs", "restore+3dgs"] and h.groups == ["garden", "street", "Average"]
+    assert h.row("nimbus").values[("Average", "psnr")] == pytest.approx(22.0)
     assert h.marks("Average", "psnr") == [1, 2, None]
     assert h.marks("garden", "ssim") == [1, None, 2]
     assert h.marks("street", "lpips") == [1, None, 2]
     r = tables["R"]
-    assert r.values[("nimbus", "Average", "psnr")] is None  # a missing scene leaves the average empty
-    assert r.values[("3dgs", "Average", "psnr")] == pytest.approx(23.0)
+    assert r.row("nimbus").values[("Average", "psnr")] is None  # a missing scene leaves the average empty
+    assert r.row("3dgs").values[("Average", "psnr")] == pytest.approx(23.0)
 
 
 def _latex_rows(tex: str) -> list[str]:
@@ -108,8 +111,7 @@ def test_latex_structure_and_marks(tables):
 
 def test_latex_missing_and_escaped(tables):
     t = tables["R"]
-    t.methods[0] = "nimbus_v2"
-    t.values.update({("nimbus_v2", k[1], k[2]): v for k, v in t.values.items() if k[0] == "nimbus"})
+    t.blocks[0].rows[0].label = "nimbus_v2"
     tex = to_latex(t)
     row = _latex_rows(tex)[0].strip()
     assert row.startswith(r"nimbus\_v2")
@@ -145,9 +147,9 @@ def test_seeds_are_averaged_and_mixed_protocols_refused(tmp_path):
     store = ResultsStore(tmp_path / "a")
     for r in records(seeds=(0, 1)):
         store.append(r)
-    (h, _) = comparison_tables(load_results(tmp_path / "a"))
-    assert h.values[("nimbus", "garden", "psnr")] == pytest.approx(21.5)
-    assert h.seeds[("nimbus", "garden")] == 2
+    (h, _), _ = comparison_tables(load_results(tmp_path / "a"))
+    assert h.row("nimbus").values[("garden", "psnr")] == pytest.approx(21.5)
+    assert h.row("nimbus").group_fields["garden"]["seeds"] == 2
     store = ResultsStore(tmp_path / "b")
     for r in records() + [dict(records("dmpix")[0], cell_id="other")]:
         store.append(r)
@@ -209,7 +211,7 @@ def test_reference_check_and_update(store_root, tmp_path, capsys):
 def test_paper_reference_tables_and_their_marks():
     """The transcribed paper tables are complete, and our best / second-best rule reproduces the paper's marks."""
     from benchmark.data import PAPER_DIR as folder
-    from benchmark.tables import DECIMALS, HIGHER_IS_BETTER
+    from benchmark.tables.results import METRIC_COLUMNS
 
     labels = {}
     disagree = []
@@ -222,7 +224,8 @@ def test_paper_reference_tables_and_their_marks():
         assert list(by_scene)[-1] == "Average" and len({len(v) for v in by_scene.values()}) == 1
         for scene, scene_rows in by_scene.items():
             for k in ("psnr", "ssim", "lpips"):
-                marks = rank_marks([float(r[k]) for r in scene_rows], HIGHER_IS_BETTER[k], DECIMALS[k])
+                col = next(c for c in METRIC_COLUMNS if c.key == k)
+                marks = rank_marks([float(r[k]) for r in scene_rows], col.higher_is_better, col.decimals)
                 if [{1: "best", 2: "second"}.get(m, "") for m in marks] != [r[f"{k}_mark"] for r in scene_rows]:
                     disagree.append((rows[0]["table_label"], scene, k))
     assert labels == {"tab:dehaze": "H", "tab:derain": "R", "tab:desnow": "S", "tab:mix": "H+R+S",
