@@ -20,8 +20,20 @@ ABLATIONS = Combined("ablations.md", "all ablation and runtime tables (ours, the
 
 
 class Layout(NamedTuple):
-    """A table layout: ours from the store (with the layouts it skipped), the paper's by layout, and the
-    Markdown file gathering them."""
+    """A table layout, as :data:`LAYOUTS` lists it.
+
+    Attributes
+    ----------
+    tables : callable
+        ``tables(df, method_order) -> (tables, skipped)``: our :class:`~benchmark.tables.model.Table`
+        list from the store (``df``: :func:`benchmark.store.load_results` output; ``method_order``:
+        methods listed first), and the layouts not written, as ``"<stem> (<paper label>)"``.
+        Raises NimbusError when the store cannot make a table (empty, mixed protocols).
+    paper : callable
+        ``paper() -> {layout: table}``: the paper's numbers in the same layout (package data).
+    markdown : Combined
+        The Markdown file that gathers the tables (ours, each layout's followed by the paper's).
+    """
 
     tables: Callable[..., tuple[list[Table], list[str]]]
     paper: Callable[[], dict[str, Table]]

@@ -232,3 +232,41 @@ def test_paper_reference_tables_and_their_marks():
                       "tab:h+r": "H+R", "tab:h+s": "H+S", "tab:r+s": "R+S"}
     # The paper's one slip (README): it marks RainyScape's 0.808 second, above OR+3DGS's 0.814.
     assert disagree == [("tab:r+s", "Tanabata", "ssim")]
+
+
+def test_a_table_layout_is_data():
+    """A hand-built table (two blocks, a text column, an unranked column) renders alike in all three formats."""
+    from benchmark.tables.model import Block, Column, LongFormat, Row, Table
+
+    cols = (Column("note", "note", "note", align="left"), Column("psnr", "PSNR↑", r"PSNR$\uparrow$", 2, True),
+            Column("mb", "MB", "MB", 0, unit=" MB"))
+    fmt = LongFormat("x.csv", "test", ("table", "block", "row", "scene", "note", "psnr", "psnr_mark", "mb"),
+                     group_field="scene")
+
+    def row(label, a, b, note="ok"):
+        return Row(label, {("a", "psnr"): a, ("b", "psnr"): b, ("a", "note"): note, ("b", "mb"): 512.4},
+                   fields={"row": label})
+
+    t = Table("x", "x", "A test of 50% & more", cols, ["a", "b"],
+              [Block([row("r_1", 1.0, 2.0), row("r2", 3.0, None, "a|b"), row("r3", 2.0, 1.0)], "first",
+                     {"block": "1"}),
+               Block([row("s1", 5.0, 5.0)], "second", {"block": "2"})],
+              lead=("Row", "Kind"), notes=["n1"], label="tab:x", csv=fmt, fields={"table": "x"})
+    assert t.marks("a", "psnr", 0) == [None, 1, 2] and t.marks("a", "mb", 0) == [None] * 3
+    assert t.marks("a", "psnr", 1) == [None]  # one row: nothing to rank
+    tex = to_latex(t)
+    assert tex.count("{") == tex.count("}") and r"\begin{tabular}{l c ccc ccc}" in tex
+    rows = _latex_rows(tex)
+    assert len(rows) == 4 and all(r.count("&") == 1 + 1 + 6 - 1 for r in rows)
+    assert r"r\_1 & \multirow{3}{*}{first}" in rows[0] and r"\first{3.00}" in rows[1] and "512 MB" in rows[0]
+    assert r"\cmidrule(lr){1-8}" in tex and r"A test of 50\% \& more" in tex
+    md = to_markdown(t)
+    table = [line for line in md.splitlines() if line.startswith("|")]
+    assert table[0] == "| Row | Kind | a note | a PSNR↑ | a MB | b note | b PSNR↑ | b MB |"
+    assert table[1] == "|:---|:---|:---|---:|---:|:---|---:|---:|"
+    assert "| r2 | first | a\\|b | **3.00** | – | – | – | 512 MB |" in table
+    assert md.rstrip().endswith("n1. Best **bold**, second best _italic_.")
+    lines = list(csv.DictReader(io.StringIO(to_csv([t]))))
+    assert len(lines) == 2 * 4  # (groups) x (rows)
+    assert lines[1] == {"table": "x", "block": "1", "row": "r2", "scene": "a", "note": "a|b", "psnr": "3.0",
+                        "psnr_mark": "best", "mb": ""}

@@ -218,22 +218,10 @@ def _ablation_table(spec: AblationSpec, frame, key: str, title: str, preset: str
 
 
 def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]]:
-    """Our ablation tables from the store, and the layouts not written (no variant run).
+    """Our ablation tables (one per layout with a variant row in the store, one per preset when the store
+    mixes presets), and ``"<stem> (<paper label>)"`` of each layout the store has no variant row of.
 
-    Parameters
-    ----------
-    df : pandas.DataFrame
-        :func:`benchmark.store.load_results` output.
-    method_order : sequence of str
-        Unused (the rows are the paper's); the same signature as the other layouts.
-
-    Returns
-    -------
-    tables : list of Table
-        One per layout with at least one variant row in the store (one per preset when the
-        store mixes presets).
-    skipped : list of str
-        ``"<stem> (<paper label>)"`` of each layout the store has no variant row of.
+    ``method_order`` is unused: the rows are the paper's.
     """
     ok = finished(df)
     ssim_protocol, lp = protocols(ok)

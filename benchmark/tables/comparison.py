@@ -38,14 +38,9 @@ def _table(weather: str, key: str, label: str, scenes: list[str], rows: list[Row
 
 
 def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]]:
-    """One table per weather setting of the store's finished cells (and no layout skipped).
+    """One table per weather setting of the store's finished cells (no layout is ever skipped).
 
-    Parameters
-    ----------
-    df : pandas.DataFrame
-        :func:`benchmark.store.load_results` output.
-    method_order : sequence of str
-        Methods listed first, in this order (others follow in store order).
+    Methods in ``method_order`` are listed first, in that order; the others follow in store order.
     """
     from weather_synth.settings import ALL_SETTING_NAMES
 

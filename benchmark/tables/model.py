@@ -70,22 +70,27 @@ class Column:
     significant : int
         At least this many significant digits are printed (more decimals for small values);
         0: always :attr:`decimals`.
+    align : {"right", "left", "center", "none"}
+        Alignment of the Markdown column (LaTeX centres every value column, as the paper does).
     """
 
     key: str
     text: str
     latex: str
-    decimals: int
+    decimals: int = 0
     higher_is_better: bool | None = None
     unit: str = ""
     significant: int = 0
+    align: str = "right"
 
     @property
     def ranked(self) -> bool:
         return self.higher_is_better is not None
 
-    def format(self, v: float | None, missing: str) -> str:
-        """``v`` as printed, or ``missing``."""
+    def format(self, v: float | str | None, missing: str) -> str:
+        """``v`` as printed (text as it is), or ``missing``."""
+        if isinstance(v, str):
+            return v
         if not finite(v):
             return missing
         decimals = self.decimals
@@ -103,7 +108,8 @@ class Row:
     label : str
         Plain text (LaTeX via :attr:`Table.latex_names`, else escaped).
     values : dict
-        ``(group, column key) -> float or None``; a missing key is printed as missing.
+        ``(group, column key) -> float, text or None``; a missing key is printed as missing.  Text
+        is printed as it is and never ranked.
     rule_before : bool
         A rule above the row in LaTeX (the paper separates "Ours" from the variants so).
     fields : dict
@@ -113,7 +119,7 @@ class Row:
     """
 
     label: str
-    values: dict[tuple[str, str], float | None] = field(default_factory=dict)
+    values: dict[tuple[str, str], float | str | None] = field(default_factory=dict)
     rule_before: bool = False
     fields: dict[str, Any] = field(default_factory=dict)
     group_fields: dict[str, dict[str, Any]] = field(default_factory=dict)

@@ -71,14 +71,8 @@ def _runtime_table(frame, key: str, title: str, preset: str, method_order: Seque
 
 
 def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]]:
-    """Our runtime table(s) from the store's finished H+R+S cells, and ``[layout]`` when there are none.
-
-    Parameters
-    ----------
-    df : pandas.DataFrame
-        :func:`benchmark.store.load_results` output.
-    method_order : sequence of str
-        Methods listed first, in this order.
+    """Our runtime table(s) from the store's finished H+R+S cells (one per preset), and ``[layout]`` when
+    there are none.  Methods in ``method_order`` are listed first.
     """
     ok = finished(df)
     hybrid = ok[ok["weather"] == WEATHER]

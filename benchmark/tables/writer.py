@@ -28,6 +28,7 @@ LATEX_MACROS = (r"\providecommand{\first}[1]{\cellcolor{red!25}{#1}}" "\n"
                 r"\providecommand{\second}[1]{\cellcolor{orange!25}{#1}}")
 MARK_MACROS = {1: r"\first", 2: r"\second"}
 MARK_WORDS = {1: "best", 2: "second"}
+MARKDOWN_ALIGN = {"right": "---:", "left": ":---", "center": ":---:", "none": "---"}
 MISSING_TEXT = "–"
 MISSING_LATEX = "--"
 _LATEX_SPECIAL = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",
@@ -125,7 +126,8 @@ def to_markdown(t: Table) -> str:
     lead = list(t.lead[:2 if several else 1])
     values = [f"{g} {c.text}" if t.group_heads else c.text for g in t.groups for c in t.columns]
     lines = [f"### {t.title}", "", "| " + " | ".join(lead + values) + " |",
-             "|" + "|".join([":---"] * len(lead) + ["---:"] * len(values)) + "|"]
+             "|" + "|".join([":---"] * len(lead) + [MARKDOWN_ALIGN[c.align] for _ in t.groups for c in t.columns])
+             + "|"]
     for bi, block in enumerate(t.blocks):
         for row, cells in zip(block.rows, _cells(t, bi, MISSING_TEXT, _markdown_mark)):
             texts = [row.label] + ([block.name] if several else []) + [c for g in cells for c in g]
@@ -155,7 +157,7 @@ def to_csv(tables: Sequence[Table]) -> str:
                     line = {**t.fields, **block.fields, **row.fields, **row.group_fields.get(g, {}), fmt.group_field: g}
                     for c in t.columns:
                         v = row.values.get((g, c.key))
-                        line[c.key] = repr(float(v)) if finite(v) else ""
+                        line[c.key] = v if isinstance(v, str) else repr(float(v)) if finite(v) else ""
                         line[f"{c.key}_mark"] = MARK_WORDS.get(marks[c.key][ri], "")
                     w.writerow([line.get(name, "") for name in fmt.columns])
     return buf.getvalue()
