@@ -270,3 +270,24 @@ def test_a_table_layout_is_data():
     assert len(lines) == 2 * 4  # (groups) x (rows)
     assert lines[1] == {"table": "x", "block": "1", "row": "r2", "scene": "a", "note": "a|b", "psnr": "3.0",
                         "psnr_mark": "best", "mb": ""}
+
+
+def test_reference_data_is_declared_package_data():
+    """Every file of benchmark/data ships with a (non-editable) install: pyproject.toml declares it."""
+    import fnmatch
+    import tomllib
+    from pathlib import Path
+
+    from benchmark import reference
+    from benchmark.data import DATA_DIR, PAPER_ABLATIONS_DIR, PAPER_DIR, REGRESSION_REFERENCE
+
+    root = Path(__file__).resolve().parents[1]
+    patterns = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
+    declared = patterns["benchmark.data"]
+    files = [p.relative_to(DATA_DIR).as_posix() for p in DATA_DIR.rglob("*")
+             if p.is_file() and p.suffix not in (".py", ".pyc")]
+    assert files and all(any(fnmatch.fnmatch(f, pat) for pat in declared) for f in files), (files, declared)
+    # `nimbus-bench reference check / update --regression` read and rewrite this package file.
+    assert reference.REGRESSION_REFERENCE == REGRESSION_REFERENCE and REGRESSION_REFERENCE.is_file()
+    assert len(list(PAPER_DIR.glob("*.csv"))) == 7
+    assert len(list(PAPER_ABLATIONS_DIR.glob("*.csv"))) == 5
