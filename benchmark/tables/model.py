@@ -238,6 +238,11 @@ class Table:
     csv: LongFormat | None = None
     fields: dict[str, Any] = field(default_factory=dict)
 
+    def __post_init__(self):
+        if len(self.lead) < (2 if len(self.blocks) > 1 else 1):
+            raise ValueError(f"table {self.key}: {len(self.blocks)} blocks need {min(len(self.blocks), 2)} lead "
+                             f"heads (rows, blocks), got {self.lead}")
+
     @property
     def ranked(self) -> bool:
         return any(c.ranked for c in self.columns)
