@@ -26,14 +26,15 @@ beside ours (``paper_<stem>``), labelled as the paper's numbers on the paper's d
 
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass
-from importlib.resources.abc import Traversable
-from typing import Iterator, Sequence
+from typing import TYPE_CHECKING, Iterator, Sequence
 
-from benchmark.data import PAPER_ABLATIONS_DIR
+from benchmark.data import PAPER_ABLATIONS_DIR, read_csv
 from benchmark.tables.model import AVERAGE, Block, LongFormat, Row, Table
 from benchmark.tables.results import METRIC_COLUMNS, METRICS, average, finished, ordered, protocols, scene_means
+
+if TYPE_CHECKING:  # importlib.resources.abc is Python 3.11+
+    from importlib.resources.abc import Traversable
 
 #: Our configuration behind the paper's "Ours" row of the ablations (every component forced on).
 OURS = "nimbus-full"
@@ -237,12 +238,6 @@ def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]
     return out, skipped
 
 
-def read_reference(path: Traversable) -> list[dict]:
-    """The lines of one of the paper's CSV files."""
-    with path.open(newline="") as fh:
-        return list(csv.DictReader(fh))
-
-
 def paper(folder: Traversable = PAPER_ABLATIONS_DIR) -> dict[str, Table]:
     """The paper's ablation tables by file stem (those whose reference file exists).
 
@@ -253,7 +248,7 @@ def paper(folder: Traversable = PAPER_ABLATIONS_DIR) -> dict[str, Table]:
         path = folder / spec.reference
         if not path.is_file():
             continue
-        records = read_reference(path)
+        records = read_csv(path)
         known = {r.label for b in spec.blocks for r in b.rows if r.in_paper}
         if {r["variant"] for r in records} != known:
             raise ValueError(f"{path}: its variants {sorted({r['variant'] for r in records})} are not the paper "

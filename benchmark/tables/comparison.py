@@ -10,13 +10,14 @@ empty for a method missing a scene.  Best and second best are marked per column
 
 from __future__ import annotations
 
-import csv
-from importlib.resources.abc import Traversable
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
-from benchmark.data import PAPER_DIR
+from benchmark.data import PAPER_DIR, read_csv
 from benchmark.tables.model import AVERAGE, Block, LongFormat, Row, Table
 from benchmark.tables.results import METRIC_COLUMNS, METRICS, average, finished, ordered, protocols, scene_means
+
+if TYPE_CHECKING:  # importlib.resources.abc is Python 3.11+
+    from importlib.resources.abc import Traversable
 
 CSV = LongFormat("comparisons.csv", "all method comparisons, long format",
                  ("weather", "method", "scene", *METRICS, *(f"{k}_mark" for k in METRICS), "seeds", "ssim_protocol",
@@ -78,11 +79,10 @@ def paper(folder: Traversable = PAPER_DIR) -> dict[str, Table]:
     share the layout of ours, not the data.
     """
     out: dict[str, Table] = {}
-    files = sorted((f for f in folder.iterdir() if f.name.endswith(".csv")), key=lambda f: f.name) \
-        if folder.is_dir() else []
-    for f in files:
-        with f.open(newline="") as fh:
-            records = list(csv.DictReader(fh))
+    if not folder.is_dir():
+        return out
+    for f in sorted((f for f in folder.iterdir() if f.name.endswith(".csv")), key=lambda f: f.name):
+        records = read_csv(f)
         if not records:
             continue
         label, weather = records[0]["table_label"], records[0]["weather"]

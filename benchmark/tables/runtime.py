@@ -7,15 +7,17 @@ ranked (the paper marks nothing).  One table per preset when the store mixes pre
 
 from __future__ import annotations
 
-from importlib.resources.abc import Traversable
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from benchmark.data import PAPER_ABLATIONS_DIR
-from benchmark.tables.ablation import LATEX_PACKAGES, by_preset, read_reference
+from benchmark.data import PAPER_ABLATIONS_DIR, read_csv
+from benchmark.tables.ablation import LATEX_PACKAGES, by_preset
 from benchmark.tables.model import Block, Column, LongFormat, Row, Table
 from benchmark.tables.results import finished, ordered
+
+if TYPE_CHECKING:  # importlib.resources.abc is Python 3.11+
+    from importlib.resources.abc import Traversable
 
 KEY, PAPER_LABEL, WEATHER, REFERENCE = "runtime", "tab:runtime", "H+R+S", "runtime.csv"
 TITLE = f"Model complexity and runtime ({WEATHER})"
@@ -86,7 +88,7 @@ def paper(folder: Traversable = PAPER_ABLATIONS_DIR) -> dict[str, Table]:
     path = folder / REFERENCE
     if not path.is_file():
         return {}
-    records = read_reference(path)
+    records = read_csv(path)
     label = records[0]["table_label"]
     rows = [Row(r["method"], {("", c.key): float(r[c.key]) for c in COLUMNS}) for r in records]
     return {KEY: _table(f"paper_{KEY}", f"paper-{KEY}", rows,
