@@ -17,7 +17,7 @@ Synthesised input
 The regression grid
     :data:`REGRESSION_GRID` is the tiny benchmark CI runs (``tests/test_regression.py``,
     inside the README's ``python -m pytest``) against :data:`REGRESSION_REFERENCE`
-    (``tables/reference/regression_tiny.json``).  ``nimbus-bench reference update
+    (``benchmark/data/regression_tiny.json``, package data).  ``nimbus-bench reference update
     --regression`` runs exactly that grid in a temporary folder and rewrites the file;
     ``check --regression`` runs it and checks, as the test does.
 
@@ -46,11 +46,10 @@ from typing import Callable
 
 import numpy as np
 
+from benchmark.data import REGRESSION_REFERENCE  # the committed figures of REGRESSION_GRID (package data)
 from nimbus.errors import NimbusError
 
 REFERENCE_FORMAT = "nimbus-bench-reference/1"
-#: The committed reference figures of :data:`REGRESSION_GRID`.
-REGRESSION_REFERENCE = Path(__file__).resolve().parents[1] / "tables" / "reference" / "regression_tiny.json"
 #: Metric key, :class:`Tolerance` field, +1 when higher is better (-1: lower is better).
 METRICS = (("psnr", "psnr_db", 1), ("ssim", "ssim", 1), ("lpips", "lpips", -1))
 #: Blocks (rows, columns) over which each input image's channel means are recorded.
@@ -158,7 +157,7 @@ REGRESSION_GRID = RegressionGrid()
 #: The regression grid's tolerance: about twice the largest change measured between CPUs.  On one
 #: AVX-512 machine, emulating an AVX2-only and a pre-AVX CPU (:data:`EMULATED_CPUS`) moved the grid's
 #: figures by up to 0.50 dB PSNR, 0.017 SSIM and 0.030 LPIPS between any two of the three (per cell:
-#: tables/reference/README.md), and a real AVX2 machine moved one SSIM by 0.020 (issue 14); the
+#: benchmark/data/README.md), and a real AVX2 machine moved one SSIM by 0.020 (issue 14); the
 #: compositing kernel's clones moved nothing.
 CROSS_CPU_TOLERANCE = Tolerance(psnr_db=1.0, ssim=0.04, lpips=0.06)
 

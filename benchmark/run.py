@@ -61,7 +61,7 @@ def _seeds(spec: str) -> list[int]:
 
 def run(args: argparse.Namespace) -> int:
     from benchmark.store import load_results
-    from benchmark.tables import summary_table
+    from benchmark.tables.summary import summary_table
     from nimbus.data.builtin import list_scenes
     from nimbus.train.config import parse_set_args
     from weather_synth.settings import parse_weather
