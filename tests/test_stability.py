@@ -13,7 +13,7 @@ import torch
 
 from benchmark import stability
 from benchmark.cli import TOOL
-from benchmark.grid import make_config
+from benchmark.cell import make_config
 from benchmark.stability import CASES, COLUMNS, StabilityCase, get_cases
 from nimbus.cli_util import run_cli
 from nimbus.errors import NimbusError
