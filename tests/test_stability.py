@@ -154,6 +154,24 @@ def test_crash_and_unflagged_nan_fail_the_report(tmp_path, monkeypatch, capsys):
     assert "Traceback" in json.loads((out / "stability.json").read_text())["rows"][0]["traceback"]
 
 
+class _NaNThenClearError(GaussianTrainer):
+    def train(self):
+        with torch.no_grad():
+            self.params.tensors["opacity_logits"][0] = float("nan")
+        raise NimbusError("the loss became NaN")
+
+
+def test_a_model_whose_training_failed_is_still_checked(tmp_path, monkeypatch, capsys):
+    _register(monkeypatch, "nan-then-error", _NaNThenClearError)
+    monkeypatch.setattr(stability, "CASES", (StabilityCase("clean", "the clean scene", methods=("nan-then-error",)),))
+    out = tmp_path / "report"
+    assert run_cli(TOOL.run, ["stability", "--out", str(out), "--work", str(tmp_path / "work")] + FAST) == 0, \
+        capsys.readouterr().err
+    row = _read_csv(out / "stability.csv")[0]
+    assert (row["outcome"], row["stage"], row["message"]) == ("clear error", "training", "the loss became NaN")
+    assert row["nan_seen"] == "yes" and "parameters" in row["nan_where"] and row["verdict"] == "ok"
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--cases", "nope"], "unknown stability case"),
     (["--methods", "nope"], "unknown method"),
