@@ -140,14 +140,14 @@ class RegressionGrid:
     device: str = "cpu"
 
     def cells(self) -> list:
-        """The grid's :class:`benchmark.grid.Cell` list, in table order."""
+        """The grid's :class:`benchmark.cell.Cell` list, in table order."""
         from benchmark.grid import build_cells
 
         return build_cells(self.scenes, self.weathers, self.methods, [self.preset], self.seeds, self.size)
 
     def options(self):
-        """The :class:`benchmark.grid.CellOptions` its cells run with."""
-        from benchmark.grid import CellOptions
+        """The :class:`benchmark.cell.CellOptions` its cells run with."""
+        from benchmark.cell import CellOptions
 
         return CellOptions(self.ssim_protocol, self.lpips_net, self.threads, self.device)
 
@@ -224,8 +224,8 @@ def input_fingerprint(data: str | Path) -> dict | None:
 
 
 def _cell_of(record: dict):
-    """The :class:`benchmark.grid.Cell` of a record, or None when the record does not name one."""
-    from benchmark.grid import Cell
+    """The :class:`benchmark.cell.Cell` of a record, or None when the record does not name one."""
+    from benchmark.cell import Cell
 
     try:
         return Cell.from_dict(record)
@@ -237,7 +237,7 @@ def attach_input_content(df, root: str | Path):
     """``df`` with a column ``input_content``: each ok cell's :func:`input_fingerprint`, read from ``root``'s data
     (None where the data folder is gone), and ``input_key``, its name in a reference file
     (``<scene>-<size>/<weather>``)."""
-    from benchmark.grid import data_dir
+    from benchmark.cell import data_dir
 
     df = df.copy()
     cache: dict[str, dict | None] = {}
