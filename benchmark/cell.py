@@ -124,7 +124,7 @@ class CellOptions:
     Attributes
     ----------
     ssim_protocol : str
-        :data:`benchmark.metrics.SSIM_PROTOCOLS` name (``3dgs``: the paper's).
+        :data:`nimbus.metrics.SSIM_PROTOCOLS` name (``3dgs``: the paper's).
     lpips_net : str or None
         ``vgg`` (the paper's), ``alex``, or None to skip LPIPS.
     threads : int or None
@@ -309,7 +309,7 @@ def score_run(run: Path, data: Path, results: dict, *, ssim_protocol: str, lpips
     """Score a trained run's renders of its evaluation split against the ground truth of ``data``.
 
     ``data`` is a setting folder (``clean/`` holds the ground truth); ``lpips_net`` is a network
-    name, a loaded :class:`benchmark.metrics.LPIPS` or None.  A missing LPIPS is left to the
+    name, a loaded :class:`nimbus.metrics.LPIPS` or None.  A missing LPIPS is left to the
     score's notes rather than warned about.  Returns :func:`benchmark.score.score_renders`'s dict.
     """
     from benchmark.score import score_renders

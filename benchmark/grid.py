@@ -240,8 +240,7 @@ def make_executor(name: str, jobs: int = 1, scheduler: str | None = None) -> Exe
 # --- command-line flags of the verbs that run cells (``run``, ``tradeoff``) ------------------------
 def add_run_arguments(p, jobs_help: str) -> None:
     """The flags that say where and how cells run and are scored, and how the run reports."""
-    from benchmark.lpips import LPIPS_NETS
-    from benchmark.metrics import SSIM_PROTOCOLS
+    from nimbus.metrics import LPIPS_NETS, SSIM_PROTOCOLS
 
     p.add_argument("--executor", choices=("local", "dask"), default="local",
                    help="local: worker processes; dask: tasks on a Dask distributed cluster")

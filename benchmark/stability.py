@@ -199,7 +199,7 @@ class StabilityOptions:
     methods : tuple of str or None
         Run only these of each case's methods (None: all of them).
     ssim_protocol : str
-        :data:`benchmark.metrics.SSIM_PROTOCOLS` name.
+        :data:`nimbus.metrics.SSIM_PROTOCOLS` name.
     lpips_net : str or None
         ``vgg``, ``alex`` or None (no LPIPS).
     device : str or None
@@ -369,7 +369,7 @@ def run_method(case: StabilityCase, method_name: str, data: Path, run: Path, opt
                lpips=None) -> dict:
     """Train ``method_name`` on the case's input, score it and check for NaN / inf; never raises.
 
-    ``lpips`` is a loaded :class:`benchmark.metrics.LPIPS` (or None) shared by every run.
+    ``lpips`` is a loaded :class:`nimbus.metrics.LPIPS` (or None) shared by every run.
     """
     from benchmark.cell import make_config, score_run, train_method
     from nimbus.data.io import load_scene
@@ -477,8 +477,7 @@ def run_report(cases: Sequence[StabilityCase], work: str | Path, options: Stabil
 
     ``log`` receives one progress line per row (default: stderr).
     """
-    from benchmark.metrics import LPIPS
-    from benchmark.weights import WeightsMissing
+    from nimbus.metrics import LPIPS, WeightsMissing
 
     options = options or StabilityOptions()
     say = log or (lambda s: print(s, file=sys.stderr, flush=True))
@@ -600,8 +599,7 @@ EXAMPLE = "nimbus-bench stability --out stability/ --cases no_haze,white_inputs 
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from benchmark.lpips import LPIPS_NETS
-    from benchmark.metrics import SSIM_PROTOCOLS
+    from nimbus.metrics import LPIPS_NETS, SSIM_PROTOCOLS
 
     p.add_argument("--out", default="stability", help="folder for stability.csv / .md / .json")
     p.add_argument("--cases", default="all", help="comma list of case names (see --list) or all")

@@ -17,11 +17,11 @@ from benchmark import cell, grid
 from benchmark.cell import CellOptions, data_dir, run_dir
 from benchmark.cli import TOOL
 from benchmark.grid import DaskExecutor, InlineExecutor, LocalExecutor, build_cells, run_grid
-from benchmark.metrics import psnr
 from benchmark.store import ResultsStore, load_results
 from nimbus.cli_util import run_cli
 from nimbus.data.images import read_image
 from nimbus.errors import NimbusError
+from nimbus.metrics import peak_signal_noise_ratio as psnr
 from nimbus.utils.fs import sha256_file
 
 OVERRIDES = {"iterations": "5"}

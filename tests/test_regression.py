@@ -23,9 +23,9 @@ from benchmark.reference import (CONTENT_GRID, CROSS_CPU_TOLERANCE, REGRESSION_G
                                  load_reference, make_reference, notes, run_regression)
 from nimbus.data.images import write_image
 from benchmark.store import ResultsStore, load_results
-from benchmark.weights import weights_path
 from nimbus.cli_util import run_cli
 from nimbus.errors import NimbusError
+from nimbus.metrics import weights_path
 from nimbus.render.rasterize import cpp_available
 
 UPDATE = "nimbus-bench reference update --regression"
