@@ -155,28 +155,36 @@ def test_trainer_scores_masked_test_views_over_valid_pixels(tmp_path):
 
 @pytest.mark.slow
 def test_masked_out_corruption_does_not_hurt_training(tmp_path):
-    """Half of every training image is noise.  Masked out, the test PSNR stays near the clean run's;
-    trained on, it drops by several dB (measured at 400 iterations: clean 19.7, masked 18.7, unmasked 15.9 dB)."""
+    """A magenta occluder (a third of the width, half the height) stands at a random place in every training
+    image, like a passer-by.  Masked out, the test PSNR stays near the clean run's; trained on, it drops.
+
+    Measured at 400 iterations on an AVX2 machine, seeds 0 / 1 / 2 (seeds 1 and 2 chose the margins):
+    clean 20.12 / 20.06 / 20.11, masked 19.65 / 19.65 / 19.58, unmasked 18.10 / 17.93 / 18.28 dB.  An earlier
+    version corrupted the right half of every image with noise; its masked run lost 1.0 to 2.7 dB to the clean
+    one depending on the seed and the CPU (that half of the scene had too little supervision left), so the test
+    measured chance rather than the mask.
+    """
     s = render_builtin("garden", size="tiny", seed=0)
     cfg = dataclasses.replace(preset("tiny").rescaled(400), sh_degree=0)
     rng = np.random.default_rng(0)
 
-    def corrupt(view, use_mask):
+    def occlude(view, use_mask):
         img = view.load_image().copy()
         h, w = img.shape[:2]
-        img[:, w // 2:] = rng.random((h, w - w // 2, 3), dtype=np.float32)
+        y, x = int(rng.integers(0, h - h // 2)), int(rng.integers(0, w - w // 3))
+        img[y:y + h // 2, x:x + w // 3] = (1.0, 0.0, 1.0)
         m = np.ones((h, w), bool)
-        m[:, w // 2:] = False
+        m[y:y + h // 2, x:x + w // 3] = False
         return dataclasses.replace(view, image=img, image_path=None, mask=m if use_mask else None, mask_path=None)
 
     def run(kind):
-        views = [v if v.name in s.test_names or kind == "clean" else corrupt(v, kind == "masked") for v in s.views]
+        views = [v if v.name in s.test_names or kind == "clean" else occlude(v, kind == "masked") for v in s.views]
         return GaussianTrainer(dataclasses.replace(s, views=tuple(views)), cfg, tmp_path / kind, seed=0,
                                progress=False).train()["psnr"]
 
     clean, masked, unmasked = run("clean"), run("masked"), run("unmasked")
-    assert masked > clean - 1.5, (clean, masked, unmasked)
-    assert unmasked < masked - 2.0, (clean, masked, unmasked)
+    assert masked > clean - 1.0, (clean, masked, unmasked)
+    assert unmasked < masked - 0.8, (clean, masked, unmasked)
 
 
 # --- the benchmark's metrics ---------------------------------------------------------------
