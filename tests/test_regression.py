@@ -26,7 +26,7 @@ from benchmark.store import ResultsStore, load_results
 from nimbus.cli_util import run_cli
 from nimbus.errors import NimbusError
 from nimbus.metrics import weights_path
-from nimbus.render.rasterize import cpp_available
+from nimbus.render import backends
 
 UPDATE = "nimbus-bench reference update --regression"
 
@@ -40,7 +40,7 @@ def test_tiny_benchmark_matches_the_committed_references(tmp_path):
         f"{REGRESSION_REFERENCE} does not hold the cells of REGRESSION_GRID; run `{UPDATE}`")
     df = run_regression(tmp_path / "bench")
     problems = compare(df, reference)
-    if problems and not cpp_available():
+    if problems and not backends.available("cpp"):
         problems.append("the C++ kernels could not be built here; the references were recorded with them")
     assert not problems, ("\n" + diff_table(df, reference) + "\n" + "\n".join(problems)
                           + f"\nIf the change is deliberate, run `{UPDATE}` and commit the reference file's diff.")
