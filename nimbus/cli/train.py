@@ -20,7 +20,7 @@ from typing import Sequence
 from nimbus.cli_util import MAX_SEED, ArgumentParser, HelpFormatter, check_seed, run_cli, seed_arg
 from nimbus.errors import NimbusError
 from nimbus.train.config import parse_set_args
-from nimbus.train.methods import METHODS, get_method
+from nimbus.methods.registry import METHODS, get_method
 
 BUILTIN_PREFIX = "builtin:"
 #: What ``scene_load_args`` in a run's config.json may hold (the keyword arguments of :func:`load_scene_arg`).
@@ -88,7 +88,7 @@ def parse_device(spec: str | None):
 def read_run_config(run: Path) -> dict:
     """The checked ``config.json`` of run folder ``run``: method, scene, seed, config and scene_load_args.
 
-    Raises NimbusError naming the file for anything that is not what :meth:`GaussianTrainer.write_config` writes.
+    Raises NimbusError naming the file for anything that is not what :meth:`Runner.write_config` writes.
     """
     cfg_file = run / "config.json"
     fix = "it is not a config.json written by nimbus-train; restore it or start a new run with --out"
@@ -135,7 +135,8 @@ def build_parser() -> ArgumentParser:
 
 
 def _resume(args, device):
-    from nimbus.train.trainer import CHECKPOINT
+    from nimbus.train.checkpoint import CHECKPOINT
+    from nimbus.train.runner import Runner
 
     run = Path(args.resume)
     cfg_file, ckpt = run / "config.json", run / CHECKPOINT
@@ -153,14 +154,15 @@ def _resume(args, device):
         raise NimbusError(f"{cfg_file}: its 'config' does not fit method {saved['method']!r} ({e}); restore the "
                           "file or start a new run with --out") from None
     scene = load_scene_arg(saved["scene"], **saved["scene_load_args"])
-    trainer = method.trainer()(scene, config, run, seed=saved["seed"], scene_path=saved["scene"],
-                               progress=not args.quiet, device=device, scene_load_args=saved["scene_load_args"])
-    trainer.load_checkpoint(ckpt)
-    print(f"resuming {run} at iteration {trainer.iteration}/{config.iterations}", file=sys.stderr)
-    return trainer.train(), trainer
+    runner = Runner(saved["method"], scene, config, run, seed=saved["seed"], scene_path=saved["scene"],
+                    scene_load_args=saved["scene_load_args"], progress=not args.quiet, device=device)
+    runner.load_checkpoint(ckpt)
+    print(f"resuming {run} at iteration {runner.iteration}/{config.iterations}", file=sys.stderr)
+    return runner.run(), runner
 
 
 def _new_run(args, device):
+    from nimbus.train.runner import Runner
     from nimbus.utils.fs import check_output_dir
 
     if not args.scene or not args.out:
@@ -192,9 +194,9 @@ def _new_run(args, device):
     created = next((p for p in reversed([out, *out.parents]) if not p.exists()), None)
     load_args = {"downscale": args.downscale} if args.downscale != 1 else {}
     try:
-        trainer = method.trainer()(scene, config, out, seed=args.seed, scene_path=args.scene,
-                                   progress=not args.quiet, device=device, scene_load_args=load_args)
-        return trainer.train(), trainer
+        runner = Runner(args.method, scene, config, out, seed=args.seed, scene_path=args.scene,
+                        scene_load_args=load_args, progress=not args.quiet, device=device)
+        return runner.run(), runner
     except BaseException:
         _remove_unresumable(out, created)
         raise
@@ -203,7 +205,7 @@ def _new_run(args, device):
 def _remove_unresumable(out: Path, created: Path | None) -> None:
     """After a failed new run: remove what it wrote unless a checkpoint was saved (kept for --resume and for
     the last-good state the error names), so a plain retry is not refused as "not empty"."""
-    from nimbus.train.trainer import CHECKPOINT, LAST_GOOD
+    from nimbus.train.checkpoint import CHECKPOINT, LAST_GOOD
 
     if (out / CHECKPOINT).exists() or (out / LAST_GOOD).exists():
         return
@@ -233,11 +235,11 @@ def _main(argv: Sequence[str] | None) -> int:
                           "or start a new run with --out")
     if args.downscale < 1:
         raise NimbusError(f"--downscale must be a positive integer (1, 2, 4, 8), got {args.downscale}")
-    results, trainer = _resume(args, device) if args.resume else _new_run(args, device)
+    results, runner = _resume(args, device) if args.resume else _new_run(args, device)
     against = " (against clean/)" if results.get("eval_reference") == "clean" else ""
     print(f"{results['method']}: {results['eval_split']} PSNR{against} {results['psnr']:.2f} dB, "
           f"SSIM {results['ssim']:.4f}, {results['num_gaussians']} Gaussians, "
-          f"{results['train_time_s']:.1f} s -> {trainer.out}")
+          f"{results['train_time_s']:.1f} s -> {runner.out}")
     return 0
 
 
