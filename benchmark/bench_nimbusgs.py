@@ -66,8 +66,8 @@ def build_method(scene_spec: str, preset_name: str, out: str, checkpoint: str | 
     medium) loaded."""
     from pathlib import Path
 
-    from nimbus.cli.train import load_scene_arg
     from nimbus.nimbusgs.config import preset
+    from nimbus.train.run_folder import load_scene_arg
     from nimbus.train.runner import Runner
 
     config = dataclasses.replace(preset(preset_name), components="csm,plm,ggs", write_decomposition=False)

@@ -49,6 +49,7 @@ from nimbus.render.gaussians import Gaussians
 from nimbus.train.checkpoint import CHECKPOINT, LAST_GOOD, read_checkpoint, write_checkpoint
 from nimbus.train.frame import SceneFrame
 from nimbus.train.ply import write_gaussian_ply
+from nimbus.train.run_folder import load_scene_arg, read_run_config
 from nimbus.train.views import view_mask
 from nimbus.utils.fs import atomic_write_json, atomic_write_text
 from nimbus.versions import software_versions
@@ -129,6 +130,33 @@ class Runner:
         self.visible_steps = 0
         self.method = get_method(method_name).load()(self.scene, config, seed=self.seed, device=self.device,
                                                      frame=self.frame)
+
+    @classmethod
+    def resume(cls, out_dir: str | os.PathLike, *, progress: bool = True,
+               device: torch.device | None = None) -> "Runner":
+        """The runner of run folder ``out_dir`` at its last checkpoint: scene, method, seed and config as its
+        ``config.json`` records them (:func:`~nimbus.train.run_folder.read_run_config`).  :meth:`run` then
+        continues it.  A folder that is not a resumable run, cannot be written, or whose files do not fit
+        raises :class:`NimbusError`; nothing in it is changed by a refusal."""
+        run = Path(out_dir)
+        cfg_file, ckpt = run / "config.json", run / CHECKPOINT
+        if not cfg_file.is_file() or not ckpt.is_file():
+            raise NimbusError(f"{run} is not a resumable run (needs config.json and {CHECKPOINT})")
+        if not os.access(run, os.W_OK | os.X_OK):
+            raise NimbusError(f"{run} cannot be written (read-only or not ours); a resumed run writes its checkpoint "
+                              "and outputs there. Fix its permissions or copy the run folder somewhere writable")
+        saved = read_run_config(run)
+        config_cls = type(get_method(saved["method"]).preset("tiny"))
+        try:
+            config = config_cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved["config"].items()})
+        except (TypeError, ValueError, NimbusError) as e:
+            raise NimbusError(f"{cfg_file}: its 'config' does not fit method {saved['method']!r} ({e}); restore "
+                              "the file or start a new run with --out") from None
+        scene = load_scene_arg(saved["scene"], **saved["scene_load_args"])
+        runner = cls(saved["method"], scene, config, run, seed=saved["seed"], scene_path=saved["scene"],
+                     scene_load_args=saved["scene_load_args"], progress=progress, device=device)
+        runner.load_checkpoint(ckpt)
+        return runner
 
     # --- log -----------------------------------------------------------------------------
     def log(self, record: dict) -> None:

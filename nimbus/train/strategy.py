@@ -31,12 +31,13 @@ import torch
 from torch import Tensor
 
 from nimbus.render.projection import quat_to_rotmat
+from nimbus.train.config import TrainConfig
 from nimbus.train.params import GaussianParams
 
 
 @dataclasses.dataclass(frozen=True)
 class DefaultStrategy:
-    """Inria 3DGS densification settings (defaults: the Inria reference, as :class:`~nimbus.train.config.TrainConfig`).
+    """Inria 3DGS densification settings (defaults: the Inria reference, :class:`~nimbus.train.config.TrainConfig`'s).
 
     Attributes
     ----------
@@ -64,18 +65,18 @@ class DefaultStrategy:
         Mean camera centre, for ``prune_world_relative``.
     """
 
-    densify_from: int = 500
-    densify_until: int = 15_000
-    densify_interval: int = 100
-    densify_grad_threshold: float = 2e-4
-    percent_dense: float = 0.01
-    prune_opacity: float = 0.005
-    prune_big_screen_px: float = 20.0
-    prune_big_world: float = 0.1
-    prune_world_relative: bool = False
-    opacity_reset_interval: int = 3000
-    opacity_reset_value: float = 0.01
-    max_gaussians: int = 3_000_000
+    densify_from: int = TrainConfig.densify_from
+    densify_until: int = TrainConfig.densify_until
+    densify_interval: int = TrainConfig.densify_interval
+    densify_grad_threshold: float = TrainConfig.densify_grad_threshold
+    percent_dense: float = TrainConfig.percent_dense
+    prune_opacity: float = TrainConfig.prune_opacity
+    prune_big_screen_px: float = TrainConfig.prune_big_screen_px
+    prune_big_world: float = TrainConfig.prune_big_world
+    prune_world_relative: bool = TrainConfig.prune_world_relative
+    opacity_reset_interval: int = TrainConfig.opacity_reset_interval
+    opacity_reset_value: float = TrainConfig.opacity_reset_value
+    max_gaussians: int = TrainConfig.max_gaussians
     extent: float = 1.0
     center: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
