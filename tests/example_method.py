@@ -45,7 +45,7 @@ class ExampleMethod:
         return {"loss": float(loss.detach()), "psnr": psnr(render["rgb"].detach(), gt),
                 "visible": bool(render["meta"]["visible"].any()), "events": []}
 
-    def render(self, camera) -> dict:
+    def render(self, camera, *, view_index=None) -> dict:  # no per-view extras
         rgb, depth, alpha, meta = rasterize(self.model, camera, sh_degree=0, background=torch.zeros(3))
         return {"rgb": rgb, "depth": depth, "alpha": alpha, "meta": meta}
 

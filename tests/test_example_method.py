@@ -43,6 +43,8 @@ def test_the_example_implements_the_protocol_and_trains_renders_and_writes_outpu
     with torch.no_grad():
         before = runner.method.render(camera)
     assert {"rgb", "depth", "alpha"} <= before.keys() and before["rgb"].shape == (camera.height, camera.width, 3)
+    with torch.no_grad():
+        assert torch.equal(runner.method.render(camera, view_index=0)["rgb"], before["rgb"])
     res = runner.run()
     assert res["method"] == "example" and res["iterations"] == 8 and res["example"]["points"] == len(scene.points)
     for name in ("config.json", CHECKPOINT, "train_log.jsonl", "results.json", "point_cloud.ply"):

@@ -69,12 +69,14 @@ class Method(Protocol):
         and ``events`` (list of ``(kind, info)`` to log, in order).  Raises :class:`TrainingDiverged`.
         """
 
-    def render(self, camera: Camera, **options) -> dict:
+    def render(self, camera: Camera, *, view_index: int | None = None) -> dict:
         """Render ``camera`` (of the training frame).
 
         Returns at least ``rgb`` [H, W, 3] (what is scored), ``depth`` [H, W] and ``alpha`` [H, W], and
         ``meta`` with a bool ``visible`` per primitive where that applies (a render that shows nothing of
-        the model is not scored).  Methods add their extras (see the method's docstring).
+        the model is not scored).  ``view_index`` says that ``camera`` is training view ``view_index``'s
+        (``train_views[view_index].camera``): a method with a per-view model adds its extras for that
+        view (NimbusGS: ``transmission``, ``airlight``, ``residual``, ``degraded``); others ignore it.
         """
 
     def state_dict(self) -> dict:

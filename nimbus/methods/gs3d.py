@@ -109,9 +109,10 @@ class GaussianSplatting:
         return Gaussians(means=t["means"], log_scales=t["log_scales"], quats=t["quats"],
                          opacity_logits=t["opacity_logits"], sh_dc=t["sh_dc"], sh_rest=t["sh_rest"])
 
-    def render(self, camera: Camera, sh_degree: int | None = None, background: Tensor | None = None) -> dict:
+    def render(self, camera: Camera, sh_degree: int | None = None, background: Tensor | None = None,
+               view_index: int | None = None) -> dict:
         """``rgb``, ``depth``, ``alpha`` and ``meta`` of ``camera`` (default: full SH degree, the configured
-        background)."""
+        background); 3DGS has no per-view extras, so ``view_index`` changes nothing."""
         bg = background if background is not None else torch.tensor(self.cfg.background, device=self.device)
         deg = self.cfg.sh_degree if sh_degree is None else sh_degree
         rgb, depth, alpha, meta = rasterize(self.gaussians(), camera, sh_degree=deg, background=bg,
