@@ -36,7 +36,7 @@ from nimbus.data.images import read_image
 from nimbus.data.io import format_names, image_size, list_images
 from nimbus.errors import NimbusError
 from nimbus.metrics import LPIPS, LPIPS_NETS, SSIM_PROTOCOLS
-from nimbus.train.trainer import view_mask
+from nimbus.train.views import view_mask
 from nimbus.utils.fs import atomic_write_json, check_output_dir, refuse_overlap, sha256_file
 
 FORMAT = "nimbus-bench-score/1"
