@@ -326,13 +326,14 @@ def synthesize(case: StabilityCase, clean: Path, out: Path) -> Path:
         A synthesis parameter is out of range (the synthesizer's own message).
     """
     from nimbus.data.io import load_scene
-    from weather_synth.config import apply_overrides, protocol_config
+    from nimbus.config_set import apply_overrides, parse_set_args
+    from weather_synth.config import protocol_config
     from weather_synth.dataset import degrade_scene
     from weather_synth.settings import parse_setting
 
     if case.weather is None:
         return clean
-    config = apply_overrides(protocol_config(SYNTH_PROTOCOL, SYNTH_SEED), case.synth)
+    config = apply_overrides(protocol_config(SYNTH_PROTOCOL, SYNTH_SEED), parse_set_args(case.synth))
     setting = parse_setting(case.weather)
     degrade_scene(load_scene(clean), out, [setting], config, overwrite=True, progress=False,
                   source=f"stability:{case.name}")
@@ -587,7 +588,8 @@ def to_markdown(rows: Sequence[dict], cases: Sequence[StabilityCase], options: S
 def write_report(out: str | Path, rows: Sequence[dict], cases: Sequence[StabilityCase], options: StabilityOptions,
                  overwrite: bool = False, wall_s: float | None = None) -> list[Path]:
     """``stability.csv``, ``stability.md`` and ``stability.json`` into ``out``, atomically (all or nothing)."""
-    from benchmark.score import jsonable, versions
+    from benchmark.score import versions
+    from nimbus.utils.jsonable import jsonable
     from nimbus.utils.fs import atomic_dir
 
     doc = {"format": "nimbus-bench-stability/1", "options": dataclasses.asdict(options), "versions": versions(),

@@ -487,7 +487,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from benchmark.grid import CellOptions, make_executor, run_grid
     from benchmark.store import ResultsStore
-    from nimbus.train.config import parse_set_args
+    from nimbus.config_set import parse_set_args
 
     knobs = parse_knobs(args.knob)
     base = base_cell(args.scene, args.weather, args.method, args.preset, args.seed, args.size,

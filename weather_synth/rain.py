@@ -23,9 +23,11 @@ range) and a slice is hidden behind nearer surfaces.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import ClassVar
 
 import numpy as np
 
+from nimbus.config_validation import Limit, at_least, between
 from nimbus.data.camera import Camera
 from nimbus.errors import NimbusError
 from weather_synth.particles import (
@@ -105,6 +107,12 @@ class RainConfig:
     layers: tuple[StreakLayer, ...] = DEFAULT_LAYERS
     angle_jitter: float = 3.0
     slices: int = 2
+
+    #: The accepted values of each field (see :mod:`nimbus.config_validation`).
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "amount": at_least(0), "density_scale": at_least(0), "length_scale": at_least(0),
+        "angle_jitter": between(0, 90, note="degrees"), "slices": at_least(1),
+    }
 
     def __post_init__(self) -> None:
         for name in ("amount", "density_scale", "length_scale"):

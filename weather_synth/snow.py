@@ -18,10 +18,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import ClassVar
 
 import cv2
 import numpy as np
 
+from nimbus.config_validation import Limit, at_least, fraction
 from nimbus.data.camera import Camera
 from nimbus.errors import NimbusError
 from weather_synth.particles import (
@@ -105,6 +107,11 @@ class SnowConfig:
     classes: tuple[FlakeClass, ...] = DEFAULT_CLASSES
     color: float = 1.0
     slices: int = 2
+
+    #: The accepted values of each field (see :mod:`nimbus.config_validation`).
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "amount": at_least(0), "size_scale": at_least(0), "color": fraction(), "slices": at_least(1),
+    }
 
     def __post_init__(self) -> None:
         for name in ("amount", "size_scale"):

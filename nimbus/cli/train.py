@@ -19,7 +19,7 @@ from typing import Sequence
 
 from nimbus.cli_util import MAX_SEED, ArgumentParser, HelpFormatter, check_seed, run_cli, seed_arg
 from nimbus.errors import NimbusError
-from nimbus.train.config import parse_set_args
+from nimbus.config_set import apply_overrides, parse_set_args
 from nimbus.train.methods import METHODS, get_method
 
 BUILTIN_PREFIX = "builtin:"
@@ -175,7 +175,7 @@ def _new_run(args, device):
         if "components" in overrides:
             raise NimbusError("give the components once: --components LIST or --set components=LIST, not both")
         overrides["components"] = args.components
-    config = base.with_overrides(overrides)
+    config = apply_overrides(base, overrides)
     check_downscale(args.scene, args.downscale)
     # Before anything is deleted: --out SCENE --overwrite (or an ancestor of the scene) would remove the input.
     out = check_output_dir(args.out, args.overwrite, inputs=[scene_input_folder(args.scene)])

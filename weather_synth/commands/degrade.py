@@ -6,8 +6,9 @@ import argparse
 from dataclasses import replace
 
 from nimbus.cli_util import MAX_SEED, seed_arg
+from nimbus.config_set import apply_overrides, parse_set_args
 from nimbus.errors import NimbusError
-from weather_synth.config import PROTOCOLS, SynthConfig, apply_overrides, protocol_config
+from weather_synth.config import PROTOCOLS, SynthConfig, protocol_config
 from weather_synth.compose import COMPOSITION_ORDERS
 from weather_synth.haze import HAZE_MODES
 from weather_synth.rain import RAIN_PRESETS, rain_preset
@@ -123,7 +124,7 @@ def config_from_args(args: argparse.Namespace, scene=None) -> SynthConfig:
                     recon_cache=getattr(args, "depth_cache", None) or "")
     cfg = replace(cfg, haze=haze, rain=rain, snow=snow, compose=compose, depth=depth,
                   depth_aware=cfg.depth_aware if args.depth_aware is None else args.depth_aware)
-    return apply_overrides(cfg, args.set)
+    return apply_overrides(cfg, parse_set_args(args.set))
 
 
 BUILTIN_PREFIX = "builtin:"
