@@ -33,7 +33,7 @@ from benchmark.lpips import LPIPS_NETS
 from benchmark.metrics import LPIPS, SSIM_PROTOCOLS, Scorer, summarize
 from nimbus.data import load_scene
 from nimbus.data.images import read_image
-from nimbus.data.io import format_names, image_size, list_images
+from nimbus.data.scene_files import format_names, image_size, list_images
 from nimbus.errors import NimbusError
 from nimbus.train.trainer import view_mask
 from nimbus.utils.fs import atomic_write_json, check_output_dir, refuse_overlap, sha256_file

@@ -343,7 +343,8 @@ def synthesize(case: StabilityCase, clean: Path, out: Path) -> Path:
 def rewrite_scene(case: StabilityCase, source: Path, out: Path) -> Path:
     """``source`` with the case's image fill, training-view cut and point collapse, written to ``out``
     (with ``clean/`` holding the ground truth, as a synthesised setting folder)."""
-    from nimbus.data.io import load_scene, output_image_name, write_scene_into
+    from nimbus.data.io import load_scene, write_scene_into
+    from nimbus.data.scene_files import output_image_name
     from nimbus.utils.fs import atomic_dir
 
     scene = load_scene(source)

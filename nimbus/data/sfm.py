@@ -39,7 +39,7 @@ import numpy as np
 import pycolmap
 
 from nimbus.data.colmap import PINHOLE_MODELS, read_colmap
-from nimbus.data.io import list_images
+from nimbus.data.scene_files import list_images
 from nimbus.data.scene import Scene
 from nimbus.errors import NimbusError
 from nimbus.utils.fs import atomic_dir, atomic_write_json, check_output_dir
