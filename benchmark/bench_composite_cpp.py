@@ -6,7 +6,7 @@ Usage::
 
 Prints one row per (image size, Gaussian count): the intersection count, the mean
 pixel alpha, forward and forward+backward wall milliseconds of
-``nimbus.render.composite_cpp`` with 1 and 2 threads (``torch.set_num_threads``; median
+``nimbus.kernels.raster.composite`` with 1 and 2 threads (``torch.set_num_threads``; median
 of the repeats after one warm-up), the 2-vs-1-thread speed-up, the CPU time used with 2
 threads relative to 1 thread (1.00 = no parallel overhead; on a machine shared with
 other jobs the wall speed-up understates what an idle machine gives, this does not),
@@ -30,7 +30,7 @@ import time
 
 import torch
 
-from nimbus.render import composite_cpp
+from nimbus.kernels import raster
 
 SIZES = ((64, 48, 2_000), (160, 120, 20_000), (320, 240, 50_000))
 TILE = 16
@@ -115,8 +115,8 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per figure (median)")
     parser.add_argument("--no-torch", action="store_true", help="skip the torch compositor baseline")
     args = parser.parse_args(argv)
-    if not composite_cpp.available():
-        print(f"compiled kernel unavailable: {composite_cpp.load_error()}")
+    if not raster.available():
+        print(f"compiled kernel unavailable: {raster.load_error()}")
         return 1
     composite_torch = None
     if not args.no_torch:
@@ -136,15 +136,15 @@ def main(argv=None) -> int:
         for width, height, n in SIZES:
             a = make_inputs(width, height, n)
             with torch.no_grad():
-                alpha = composite_cpp.composite(**a)[2]
+                alpha = raster.composite(**a)[2]
             g = torch.Generator().manual_seed(1)
             grads = (torch.randn(height, width, 3, generator=g), torch.randn(height, width, generator=g),
                      torch.randn(height, width, generator=g))
             row = {}
             for threads in (1, 2):
                 torch.set_num_threads(threads)
-                row[f"f{threads}"], _ = time_fn(fwd(composite_cpp.composite, a), args.repeats)
-                row[f"fb{threads}"], row[f"cpu{threads}"] = time_fn(fwd_bwd(composite_cpp.composite, a, grads),
+                row[f"f{threads}"], _ = time_fn(fwd(raster.composite, a), args.repeats)
+                row[f"fb{threads}"], row[f"cpu{threads}"] = time_fn(fwd_bwd(raster.composite, a, grads),
                                                                     args.repeats)
             torch.set_num_threads(threads_before)
             line = (f"{width:>4}x{height:<4} {n:>6} {a['isect_ids'].numel():>7} {float(alpha.mean()):>5.2f} | "

@@ -13,10 +13,10 @@ Each speed-up is timed against the path it replaced, in the same run, on the sam
 
 * SSIM: OpenCV's float64 separable filter against the former banded-matrix product
   (:func:`ssim_banded_matmul`, kept here as the baseline), and the trainers' float32
-  ``nimbus.losses.ssim_map`` for scale;
+  ``nimbus.metrics.ssim_map`` for scale;
 * LPIPS: the onnxruntime trunk against torch (``backend="torch"``, the former path),
   both without the ground-truth cache (``backend="auto"`` picks per network, see
-  ``benchmark.metrics.LPIPS_CPU_BACKEND``); then a second "method" scored against the
+  ``nimbus.metrics.LPIPS_CPU_BACKEND``); then a second "method" scored against the
   same ground truth, where the cache spares the trunk half its images;
 * the headline: ``score_images`` (PSNR + SSIM ``3dgs`` + LPIPS) per network, against the
   sum of the former paths' times.
@@ -38,11 +38,11 @@ import time
 import numpy as np
 import torch
 
-from benchmark.lpips import random_state_dict
-from benchmark.metrics import (LPIPS, LPIPS_CPU_BACKEND, LPIPS_GT_CACHE_MB, SSIM_PROTOCOLS, SSIM_SIGMA,
-                               SSIM_WINDOW, psnr, quantize_8bit, score_images, ssim)
-from benchmark.weights import WeightsMissing
-from nimbus.losses import SSIM_C1, SSIM_C2, ssim_map
+from benchmark.metrics import score_images
+from nimbus.metrics import (LPIPS, LPIPS_CPU_BACKEND, SSIM_PROTOCOLS, WeightsMissing, peak_signal_noise_ratio,
+                            quantize_8bit, random_state_dict, ssim_map, structural_similarity)
+from nimbus.metrics.image import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW
+from nimbus.metrics.lpips import LPIPS_GT_CACHE_MB
 
 
 def make_pairs(n: int, width: int, height: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -121,12 +121,12 @@ def main() -> None:
         # CPU seconds (all threads) beside the wall time: less sensitive to other jobs on the cores
         print(f"  {label:<40} {seconds:7.2f} s  {1000 * seconds / n:8.1f} ms/view  (cpu {timed.cpu:6.1f} s)  {extra}")
 
-    ssim(pred[:1], gt[:1])  # first calls initialise thread pools and kernels; not part of the figures
+    structural_similarity(pred[:1], gt[:1])  # first calls initialise thread pools and kernels; not part of the figures
     ssim_banded_matmul(qp[:1], qg[:1])
-    psnr_sec, v = timed(psnr, pred, gt)
+    psnr_sec, v = timed(peak_signal_noise_ratio, pred, gt)
     row("PSNR", psnr_sec, f"mean {np.mean(v):.3f} dB")
     for name in SSIM_PROTOCOLS:
-        sec, v = timed(ssim, pred, gt, name)
+        sec, v = timed(structural_similarity, pred, gt, protocol=name)
         row(f"SSIM {name} (float64)", sec, f"mean {np.mean(v):.5f}")
         if name == "3dgs":
             ssim_sec, ssim_v = sec, v

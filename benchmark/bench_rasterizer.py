@@ -92,24 +92,25 @@ def _staged(gs, cam, backend: str, cfg):
     import torch
 
     from nimbus.render import binning, composite_torch
+    from nimbus.render.backends import torch as torch_backend
 
     rz = importlib.import_module("nimbus.render.rasterize")
     viewmat, K, width, height = rz.resolve_camera(gs, cam, None, None, None, None)
     bg = torch.zeros(3, dtype=gs.means.dtype)
     t0 = time.perf_counter()
     if backend == "cpp":
-        from nimbus.render import composite_cpp
+        from nimbus.kernels import raster
 
-        means2d, conics, colors, opac, depths, radii = composite_cpp.project_and_shade(
+        means2d, conics, colors, opac, depths, radii = raster.project_and_shade(
             gs.means, gs.quats, gs.log_scales, gs.opacity_logits, gs.sh_dc, gs.sh_rest, viewmat, K, width, height,
             gs.sh_degree, cfg.projection)
         t1 = time.perf_counter()
-        ids, offsets = composite_cpp.bin_gaussians(means2d, radii, depths, width, height, cfg.tile_size)
+        ids, offsets = raster.bin_gaussians(means2d, radii, depths, width, height, cfg.tile_size)
         t2 = time.perf_counter()
-        out = composite_cpp.composite(means2d, conics, colors, opac, depths, ids, offsets, width, height,
-                                      cfg.tile_size, bg)
+        out = raster.composite(means2d, conics, colors, opac, depths, ids, offsets, width, height, cfg.tile_size,
+                               bg)
     else:
-        s = rz.project_and_shade(gs, viewmat, K, width, height, gs.sh_degree, cfg.projection)
+        s = torch_backend.project_and_shade(gs, viewmat, K, width, height, gs.sh_degree, cfg.projection)
         t1 = time.perf_counter()
         ids, offsets = binning.bin_gaussians(s.vis_means2d, s.vis_radii, s.vis_depths, width, height,
                                              cfg.tile_size)
@@ -193,16 +194,11 @@ def run_case(size: str, backend: str, repeats: int, threads: int = 1) -> dict:
 
 
 def backend_available(backend: str) -> bool:
-    if backend in ("torch", "reference"):
+    if backend == "reference":
         return True
-    import importlib
+    from nimbus.render import backends
 
-    rz = importlib.import_module("nimbus.render.rasterize")
-    if backend == "cpp":
-        return rz.cpp_available()
-    if backend == "gsplat":
-        return rz.gsplat_available()
-    return False
+    return backends.available(backend, "cuda" if backend == "gsplat" else "cpu")
 
 
 def _row(width, height, n, backend, threads, r, vs) -> str:

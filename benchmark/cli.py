@@ -8,7 +8,7 @@ from nimbus.cli_util import SubcommandTool
 
 # Subcommand name -> module defining it (order is the order in --help).
 COMMANDS = {
-    "setup-weights": "benchmark.weights",
+    "setup-weights": "benchmark.setup_weights",
     "score": "benchmark.score",
     "run": "benchmark.run",
     "tables": "benchmark.tables_cmd",

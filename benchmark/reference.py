@@ -17,7 +17,7 @@ Synthesised input
 The regression grid
     :data:`REGRESSION_GRID` is the tiny benchmark CI runs (``tests/test_regression.py``,
     inside the README's ``python -m pytest``) against :data:`REGRESSION_REFERENCE`
-    (``tables/reference/regression_tiny.json``).  ``nimbus-bench reference update
+    (``benchmark/data/regression_tiny.json``, package data).  ``nimbus-bench reference update
     --regression`` runs exactly that grid in a temporary folder and rewrites the file;
     ``check --regression`` runs it and checks, as the test does.
 
@@ -46,11 +46,10 @@ from typing import Callable
 
 import numpy as np
 
+from benchmark.data import REGRESSION_REFERENCE  # the committed figures of REGRESSION_GRID (package data)
 from nimbus.errors import NimbusError
 
 REFERENCE_FORMAT = "nimbus-bench-reference/1"
-#: The committed reference figures of :data:`REGRESSION_GRID`.
-REGRESSION_REFERENCE = Path(__file__).resolve().parents[1] / "tables" / "reference" / "regression_tiny.json"
 #: Metric key, :class:`Tolerance` field, +1 when higher is better (-1: lower is better).
 METRICS = (("psnr", "psnr_db", 1), ("ssim", "ssim", 1), ("lpips", "lpips", -1))
 #: Blocks (rows, columns) over which each input image's channel means are recorded.
@@ -141,14 +140,14 @@ class RegressionGrid:
     device: str = "cpu"
 
     def cells(self) -> list:
-        """The grid's :class:`benchmark.grid.Cell` list, in table order."""
+        """The grid's :class:`benchmark.cell.Cell` list, in table order."""
         from benchmark.grid import build_cells
 
         return build_cells(self.scenes, self.weathers, self.methods, [self.preset], self.seeds, self.size)
 
     def options(self):
-        """The :class:`benchmark.grid.CellOptions` its cells run with."""
-        from benchmark.grid import CellOptions
+        """The :class:`benchmark.cell.CellOptions` its cells run with."""
+        from benchmark.cell import CellOptions
 
         return CellOptions(self.ssim_protocol, self.lpips_net, self.threads, self.device)
 
@@ -158,7 +157,7 @@ REGRESSION_GRID = RegressionGrid()
 #: The regression grid's tolerance: about twice the largest change measured between CPUs.  On one
 #: AVX-512 machine, emulating an AVX2-only and a pre-AVX CPU (:data:`EMULATED_CPUS`) moved the grid's
 #: figures by up to 0.50 dB PSNR, 0.017 SSIM and 0.030 LPIPS between any two of the three (per cell:
-#: tables/reference/README.md), and a real AVX2 machine moved one SSIM by 0.020 (issue 14); the
+#: benchmark/data/README.md), and a real AVX2 machine moved one SSIM by 0.020 (issue 14); the
 #: compositing kernel's clones moved nothing.
 CROSS_CPU_TOLERANCE = Tolerance(psnr_db=1.0, ssim=0.04, lpips=0.06)
 
@@ -225,8 +224,8 @@ def input_fingerprint(data: str | Path) -> dict | None:
 
 
 def _cell_of(record: dict):
-    """The :class:`benchmark.grid.Cell` of a record, or None when the record does not name one."""
-    from benchmark.grid import Cell
+    """The :class:`benchmark.cell.Cell` of a record, or None when the record does not name one."""
+    from benchmark.cell import Cell
 
     try:
         return Cell.from_dict(record)
@@ -238,7 +237,7 @@ def attach_input_content(df, root: str | Path):
     """``df`` with a column ``input_content``: each ok cell's :func:`input_fingerprint`, read from ``root``'s data
     (None where the data folder is gone), and ``input_key``, its name in a reference file
     (``<scene>-<size>/<weather>``)."""
-    from benchmark.grid import data_dir
+    from benchmark.cell import data_dir
 
     df = df.copy()
     cache: dict[str, dict | None] = {}

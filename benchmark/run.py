@@ -16,10 +16,9 @@ import argparse
 import sys
 import warnings
 
-from benchmark.grid import (DEFAULT_PRESET, DEFAULT_SIZE, CellOptions, build_cells, make_executor,
-                            resolve_methods, run_grid)
-from benchmark.lpips import LPIPS_NETS
-from benchmark.metrics import SSIM_PROTOCOLS
+from benchmark.cell import DEFAULT_PRESET, DEFAULT_SIZE
+from benchmark.grid import (add_run_arguments, build_cells, executor_from_args, options_from_args,
+                            resolve_methods, run_grid, say_failed)
 from nimbus.errors import NimbusError
 
 HELP = "run the benchmark grid (scenes x weathers x methods x presets x seeds), resumable, locally or on Dask"
@@ -36,17 +35,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seeds", default="0", help="comma list of training seeds")
     p.add_argument("--size", default=DEFAULT_SIZE, help="built-in scene size: tiny, small, standard")
     p.add_argument("--root", default=DEFAULT_ROOT, help="benchmark folder (data, runs, results.jsonl)")
-    p.add_argument("--executor", choices=("local", "dask"), default="local",
-                   help="local: worker processes; dask: tasks on a Dask distributed cluster")
-    p.add_argument("--scheduler", default=None, metavar="ADDRESS", help="Dask scheduler address (with --executor dask)")
-    p.add_argument("--jobs", type=int, default=1, help="local worker processes (each gets cores/jobs torch threads)")
+    add_run_arguments(p, jobs_help="local worker processes (each gets cores/jobs torch threads)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="trainer config override (repeatable)")
-    p.add_argument("--ssim", choices=tuple(SSIM_PROTOCOLS), default="3dgs", help="SSIM protocol (3dgs: paper)")
-    p.add_argument("--lpips", choices=LPIPS_NETS + ("none",), default="vgg", help="LPIPS network (vgg: paper)")
-    p.add_argument("--device", default=None, help="torch device for training (default: cuda if available, else cpu)")
-    p.add_argument("--rerun", action="store_true",
-                   help="run finished cells again (a new result supersedes the old; a failed retry keeps the old one)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def _seeds(spec: str) -> list[int]:
@@ -61,7 +51,7 @@ def _seeds(spec: str) -> list[int]:
 
 def run(args: argparse.Namespace) -> int:
     from benchmark.store import load_results
-    from benchmark.tables import summary_table
+    from benchmark.tables.summary import summary_table
     from nimbus.data.builtin import list_scenes
     from nimbus.config_set import parse_set_args
     from weather_synth.settings import parse_weather
@@ -76,13 +66,11 @@ def run(args: argparse.Namespace) -> int:
     if not methods:
         raise NimbusError("no method to run; pass --methods (e.g. --methods 3dgs)")
     presets = [p.strip() for p in args.preset.split(",") if p.strip()]
-    executor = make_executor(args.executor, args.jobs, args.scheduler)
+    executor = executor_from_args(args)
     cells = build_cells(scenes, weathers, methods, presets, _seeds(args.seeds), args.size, parse_set_args(args.set))
     print(f"{len(cells)} cell(s): {len(scenes)} scene(s) x {len(weathers)} weather(s) x {len(methods)} method(s) "
           f"x {len(presets)} preset(s) x {len(_seeds(args.seeds))} seed(s) -> {args.root}", file=sys.stderr)
-    options = CellOptions(ssim_protocol=args.ssim, lpips_net=None if args.lpips == "none" else args.lpips,
-                          device=args.device)
-    outcome = run_grid(cells, args.root, executor, options, rerun=args.rerun, progress=not args.quiet)
+    outcome = run_grid(cells, args.root, executor, options_from_args(args), rerun=args.rerun, progress=not args.quiet)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         df = load_results(args.root)
@@ -91,9 +79,7 @@ def run(args: argparse.Namespace) -> int:
     ids = {c.cell_id for c in cells} - set(outcome.running_elsewhere)
     df = df[df["cell_id"].isin(ids)]
     print(summary_table(df, methods))
-    if outcome.failed:
-        print(f"{len(outcome.failed)} cell(s) failed; rerun the same command to retry them "
-              f"(errors are in {args.root}/results.jsonl)", file=sys.stderr)
+    say_failed(outcome, args.root)
     if outcome.running_elsewhere:
         print(f"{len(outcome.running_elsewhere)} cell(s) not in this table: another run on {args.root} is running "
               "them (running elsewhere, not failed); rerun the same command after it ends to see them here",

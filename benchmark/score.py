@@ -14,7 +14,7 @@ truth file, the protocols and the software versions, so a figure can be traced b
 the exact images it came from.
 
 A view with a validity mask (``masks/``, ``mask_path``; 0 = ignore the pixel) is scored
-over its valid pixels only (:data:`benchmark.metrics.MASK_PROTOCOL`); the results say so
+over its valid pixels only (:data:`nimbus.metrics.MASK_PROTOCOL`); the results say so
 (``masked``, ``masks``, per view ``valid_fraction``).
 """
 
@@ -29,12 +29,12 @@ from typing import Callable
 
 import numpy as np
 
-from benchmark.lpips import LPIPS_NETS
-from benchmark.metrics import LPIPS, SSIM_PROTOCOLS, Scorer, summarize
+from benchmark.metrics import Scorer, summarize
 from nimbus.data import load_scene
 from nimbus.data.images import read_image
 from nimbus.data.scene_files import format_names, image_size, list_images
 from nimbus.errors import NimbusError
+from nimbus.metrics import LPIPS, LPIPS_NETS, SSIM_PROTOCOLS
 from nimbus.train.trainer import view_mask
 from nimbus.utils.fs import atomic_write_json, check_output_dir, refuse_overlap, sha256_file
 from nimbus.utils.jsonable import jsonable
@@ -153,7 +153,7 @@ def score_renders(pred_dir: str | Path, scene_dir: str | Path, split: str = "tes
     split : {"test", "train", "all"}
     ssim_protocol : {"3dgs", "skimage", "dmpix"}
     lpips_net : {"vgg", "alex"}, None or LPIPS
-        None skips LPIPS; pass an :class:`benchmark.metrics.LPIPS` to reuse a loaded network.
+        None skips LPIPS; pass an :class:`nimbus.metrics.LPIPS` to reuse a loaded network.
         Without the weights set up, LPIPS is None with a note.
     gt_dir : path, optional
         Folder of ground-truth images (default ``SCENE/clean`` when it exists, else the scene's images).

@@ -42,14 +42,13 @@ import sys
 import tempfile
 import time
 import traceback
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from benchmark.grid import SCENE_SEED, SYNTH_PROTOCOL, SYNTH_SEED, make_config
+from benchmark.cell import SYNTH_PROTOCOL, SYNTH_SEED
 from nimbus.cli_util import pick_by_name
 from nimbus.errors import NimbusError
 
@@ -200,7 +199,7 @@ class StabilityOptions:
     methods : tuple of str or None
         Run only these of each case's methods (None: all of them).
     ssim_protocol : str
-        :data:`benchmark.metrics.SSIM_PROTOCOLS` name.
+        :data:`nimbus.metrics.SSIM_PROTOCOLS` name.
     lpips_net : str or None
         ``vgg``, ``alex`` or None (no LPIPS).
     device : str or None
@@ -280,24 +279,25 @@ def log_nonfinite(run: Path) -> bool:
     return any(_nonfinite_in(json.loads(line), _PSNR_KEYS) for line in log.read_text().splitlines() if line.strip())
 
 
-def trainer_nonfinite(trainer) -> list[str]:
-    """Where a trainer holds NaN / inf: ``parameters`` (every optimised tensor) and ``renders`` (test views)."""
+def model_nonfinite(method_name: str, model) -> list[str]:
+    """Where a trained model holds NaN / inf: ``parameters`` (every optimised tensor) and ``renders``
+    (the test views and, for a method with a medium, the medium composition of a training view)."""
     import torch
+
+    from benchmark.cell import medium_composition, model_parameters
 
     where = []
     with torch.no_grad():
-        if any(not torch.isfinite(p).all() for g in trainer.all_param_groups() for p in g["params"]):
+        if any(not torch.isfinite(p).all() for p in model_parameters(model)):
             where.append("parameters")
-        if len(trainer.params) == 0:
+        if len(model.params) == 0:
             return where
         outputs = []
-        views = trainer.scene.test_views or trainer.scene.train_views
+        views = model.scene.test_views or model.scene.train_views
         for view in views:
-            render = trainer.render(view)
-            outputs += [render["rgb"], render["depth"], render["alpha"], trainer.eval_image(view, render)]
-        if hasattr(trainer, "compose"):  # NimbusGS: the medium and residual composition of a training view
-            parts = trainer.compose(0, trainer.render(trainer.train_views[0]))
-            outputs += list(parts.values())
+            render = model.render(view)
+            outputs += [render["rgb"], render["depth"], render["alpha"], model.eval_image(view, render)]
+        outputs += list(medium_composition(method_name, model).values())
         if any(not torch.isfinite(t).all() for t in outputs):
             where.append("renders")
     return where
@@ -306,11 +306,10 @@ def trainer_nonfinite(trainer) -> list[str]:
 # --- inputs ------------------------------------------------------------------------------------
 def write_clean_scene(work: Path, options: StabilityOptions) -> Path:
     """The clean built-in scene every case starts from (written once per work folder)."""
-    from nimbus.data.builtin import write_builtin
+    from benchmark.cell import write_clean_scene as write
 
     clean = work / "clean" / f"{options.scene}-{options.size}"
-    if not (clean / "manifest.json").is_file():
-        write_builtin(options.scene, clean, options.size, seed=SCENE_SEED, overwrite=True, progress=False)
+    write(options.scene, options.size, clean)
     return clean
 
 
@@ -325,18 +324,16 @@ def synthesize(case: StabilityCase, clean: Path, out: Path) -> Path:
     NimbusError
         A synthesis parameter is out of range (the synthesizer's own message).
     """
-    from nimbus.data.io import load_scene
+    from benchmark.cell import synthesize as degrade
     from nimbus.config_set import apply_overrides, parse_set_args
     from weather_synth.config import protocol_config
-    from weather_synth.dataset import degrade_scene
     from weather_synth.settings import parse_setting
 
     if case.weather is None:
         return clean
     config = apply_overrides(protocol_config(SYNTH_PROTOCOL, SYNTH_SEED), parse_set_args(case.synth))
     setting = parse_setting(case.weather)
-    degrade_scene(load_scene(clean), out, [setting], config, overwrite=True, progress=False,
-                  source=f"stability:{case.name}")
+    degrade(clean, out, [setting.name], config, progress=False, source=f"stability:{case.name}")
     return out / setting.name
 
 
@@ -374,32 +371,26 @@ def run_method(case: StabilityCase, method_name: str, data: Path, run: Path, opt
                lpips=None) -> dict:
     """Train ``method_name`` on the case's input, score it and check for NaN / inf; never raises.
 
-    ``lpips`` is a loaded :class:`benchmark.metrics.LPIPS` (or None) shared by every run.
+    ``lpips`` is a loaded :class:`nimbus.metrics.LPIPS` (or None) shared by every run.
     """
-    import torch
-
-    from benchmark.score import score_renders
+    from benchmark.cell import make_config, score_run, train_method
     from nimbus.data.io import load_scene
     from nimbus.train.methods import get_method
 
     row = _row(case, method_name)
-    trainer = None
+    built: list = []  # the model, once built: checked for NaN / inf even when its training fails
     stage = "set-up"
     t0 = time.perf_counter()
     try:
-        method = get_method(method_name)
-        config = make_config(method, options.preset, {"iterations": str(options.iterations), **dict(case.train)})
+        config = make_config(get_method(method_name), options.preset,
+                             {"iterations": str(options.iterations), **dict(case.train)})
         scene = load_scene(data)
         stage = "training"
-        trainer = method.trainer()(scene, config, run, seed=TRAIN_SEED, scene_path=str(data), progress=False,
-                                   device=torch.device(options.device) if options.device else None)
-        results = trainer.train()
+        results, _ = train_method(method_name, scene, config, run, seed=TRAIN_SEED, scene_path=str(data),
+                                  progress=False, device=options.device, model_ready=built.append)
         stage = "scoring"
-        split = results.get("eval_split", "test")
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)
-            score = score_renders(run / "renders" / split, data, split=split, ssim_protocol=options.ssim_protocol,
-                                  lpips_net=lpips, device=options.device)
+        score = score_run(run, data, results, ssim_protocol=options.ssim_protocol, lpips_net=lpips,
+                          device=options.device)
         row.update(outcome="finished", message="; ".join(run_notes(run, results)),
                    **_metrics(score, row["nan_where"], lpips is not None))
     except NimbusError as e:
@@ -412,8 +403,8 @@ def run_method(case: StabilityCase, method_name: str, data: Path, run: Path, opt
             row["nan_where"].append("train log")
         if (run / "results.json").is_file() and _nonfinite_in(_read_json(run / "results.json"), _PSNR_KEYS):
             row["nan_where"].append("results.json")
-        if trainer is not None:
-            row["nan_where"] += trainer_nonfinite(trainer)
+        if built:
+            row["nan_where"] += model_nonfinite(method_name, built[0])
     except Exception as e:  # a check that cannot run is a crash of the run it checks
         row.update(outcome="crash", stage="checks", message=f"{e.__class__.__name__}: {e}",
                    traceback=traceback.format_exc())
@@ -488,8 +479,7 @@ def run_report(cases: Sequence[StabilityCase], work: str | Path, options: Stabil
 
     ``log`` receives one progress line per row (default: stderr).
     """
-    from benchmark.metrics import LPIPS
-    from benchmark.weights import WeightsMissing
+    from nimbus.metrics import LPIPS, WeightsMissing
 
     options = options or StabilityOptions()
     say = log or (lambda s: print(s, file=sys.stderr, flush=True))
@@ -590,8 +580,8 @@ def write_report(out: str | Path, rows: Sequence[dict], cases: Sequence[Stabilit
                  overwrite: bool = False, wall_s: float | None = None) -> list[Path]:
     """``stability.csv``, ``stability.md`` and ``stability.json`` into ``out``, atomically (all or nothing)."""
     from benchmark.score import versions
-    from nimbus.utils.jsonable import jsonable
     from nimbus.utils.fs import atomic_dir
+    from nimbus.utils.jsonable import jsonable
 
     doc = {"format": "nimbus-bench-stability/1", "options": dataclasses.asdict(options), "versions": versions(),
            "wall_time_s": wall_s, "cases": [dataclasses.asdict(c) for c in cases],
@@ -612,8 +602,7 @@ EXAMPLE = "nimbus-bench stability --out stability/ --cases no_haze,white_inputs 
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from benchmark.lpips import LPIPS_NETS
-    from benchmark.metrics import SSIM_PROTOCOLS
+    from nimbus.metrics import LPIPS_NETS, SSIM_PROTOCOLS
 
     p.add_argument("--out", default="stability", help="folder for stability.csv / .md / .json")
     p.add_argument("--cases", default="all", help="comma list of case names (see --list) or all")

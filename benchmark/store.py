@@ -2,7 +2,7 @@
 
 Layout::
 
-    ROOT/results.jsonl          one record per finished cell attempt (see :func:`benchmark.grid.run_cell`)
+    ROOT/results.jsonl          one record per finished cell attempt (see :func:`benchmark.cell.run_cell`)
     ROOT/locks/<cell-id>.lock   held while a run works on that cell (:class:`FileLock`)
     ROOT/locks/data-<name>.lock held while a run renders or synthesises that scene's data
 

@@ -1,8 +1,7 @@
 """Write the paper-style tables from the results store (``nimbus-bench tables``).
 
-Per-weather method comparisons (:mod:`benchmark.tables`), the ablation tables and the
-complexity / runtime table (:mod:`benchmark.ablation_tables`), each with the paper's numbers
-beside it where the paper has the layout.
+Each layout (:data:`LAYOUTS`) builds its tables from the store, ours then the paper's numbers
+beside them where the paper has the layout; :mod:`benchmark.tables.writer` renders them all.
 """
 
 from __future__ import annotations
@@ -10,8 +9,43 @@ from __future__ import annotations
 import argparse
 import warnings
 from pathlib import Path
+from typing import Callable, NamedTuple
 
+from benchmark.tables import ablation, comparison, runtime
+from benchmark.tables.model import Combined, Table
 from nimbus.errors import NimbusError
+
+COMPARISONS = Combined("comparisons.md", "all method comparisons (ours, then the paper's)")
+ABLATIONS = Combined("ablations.md", "all ablation and runtime tables (ours, then the paper's)")
+
+
+class Layout(NamedTuple):
+    """A table layout, as :data:`LAYOUTS` lists it.
+
+    Attributes
+    ----------
+    tables : callable
+        ``tables(df, method_order) -> (tables, skipped)``: our :class:`~benchmark.tables.model.Table`
+        list from the store (``df``: :func:`benchmark.store.load_results` output; ``method_order``:
+        methods listed first), and the layouts not written, as ``"<stem> (<paper label>)"``.
+        Raises NimbusError when the store cannot make a table (empty, mixed protocols).
+    paper : callable
+        ``paper() -> {layout: table}``: the paper's numbers in the same layout (package data).
+    markdown : Combined
+        The Markdown file that gathers the tables (ours, each layout's followed by the paper's).
+    """
+
+    tables: Callable[..., tuple[list[Table], list[str]]]
+    paper: Callable[[], dict[str, Table]]
+    markdown: Combined
+
+
+#: Every layout, in the order its files are written and listed.
+LAYOUTS = (
+    Layout(comparison.tables, comparison.paper, COMPARISONS),
+    Layout(ablation.tables, ablation.paper, ABLATIONS),
+    Layout(runtime.tables, runtime.paper, ABLATIONS),
+)
 
 HELP = ("write the paper-style tables (per-weather comparisons, ablations, complexity / runtime) as LaTeX, "
         "Markdown and CSV from the results store")
@@ -26,10 +60,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from benchmark.ablation_tables import ablation_tables, write_ablation_tables
     from benchmark.grid import DEFAULT_METHODS
     from benchmark.store import export_parquet, load_results, store_path
-    from benchmark.tables import Written, write_tables
+    from benchmark.tables.writer import Written, with_paper, write_tables
     from nimbus.utils.fs import check_output_dir, refuse_overlap
 
     root, store = Path(args.root), store_path(args.root)
@@ -54,9 +87,12 @@ def run(args: argparse.Namespace) -> int:
         df = load_results(args.root)
     order = [m.strip() for m in args.methods.split(",")] if args.methods else list(DEFAULT_METHODS)
     # Every table is computed before the first file is written, so a refused store writes nothing.
-    ablations, skipped = ablation_tables(df, order)
-    written = write_tables(df, args.out, order)
-    written += write_ablation_tables(ablations, args.out)
+    sets, skipped = [], []
+    for layout in LAYOUTS:
+        ours, missing = layout.tables(df, order)
+        sets.append((layout.markdown, with_paper(ours, layout.paper())))
+        skipped += missing
+    written = write_tables(sets, args.out)
     if args.parquet:
         written.append(Written(export_parquet(args.root, args.parquet), "the results store as Parquet"))
     width = max(len(str(w.path)) for w in written)

@@ -3,7 +3,7 @@
 A sweep is one *base* cell (by default NimbusGS with the ``tiny`` preset on the tiny
 built-in ``garden`` under haze + rain, ``H+R``) and one-knob-at-a-time variations of
 it.  A knob is a config field, set through ``--set``-style overrides, so every
-variation is an ordinary benchmark cell (:class:`benchmark.grid.Cell`): it runs through
+variation is an ordinary benchmark cell (:class:`benchmark.cell.Cell`): it runs through
 :func:`benchmark.grid.run_grid`, lands in the results store, is skipped when finished
 (a rerun resumes), and runs on Dask like any other cell.  A variation whose config
 equals the base config *is* the base cell (run once, listed under every knob).
@@ -57,9 +57,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from benchmark.grid import DEFAULT_PRESET, DEFAULT_SIZE, Cell
-from benchmark.lpips import LPIPS_NETS
-from benchmark.metrics import SSIM_PROTOCOLS
+from benchmark.cell import DEFAULT_PRESET, DEFAULT_SIZE, Cell
+from benchmark.grid import add_run_arguments
 from nimbus.errors import NimbusError
 
 HELP = ("sweep the knobs that cost time (iterations, image scale, K, grid, SH degree, components): "
@@ -207,7 +206,7 @@ def build_sweep(base: Cell, knobs: Sequence[tuple[str, tuple[str, ...] | None]] 
     NimbusError
         A knob the base method's config lacks, or a value its config rejects.
     """
-    from benchmark.grid import make_config
+    from benchmark.cell import make_config
     from nimbus.train.methods import get_method
 
     method = get_method(base.method)
@@ -230,7 +229,7 @@ def build_sweep(base: Cell, knobs: Sequence[tuple[str, tuple[str, ...] | None]] 
 
 
 def _variation(base: Cell, base_config, name: str, value: str) -> Cell:
-    from benchmark.grid import make_config
+    from benchmark.cell import make_config
     from nimbus.train.methods import get_method
 
     if name == "components" and value in METHOD_VALUES:
@@ -471,21 +470,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="benchmark folder of the sweep's cells (its own: `nimbus-bench tables` would average "
                         "the variations of a shared root as if they were seeds)")
     p.add_argument("--out", default=None, help=f"folder for tradeoff.csv/.md/.png (default: ROOT/{OUT_SUBDIR})")
-    p.add_argument("--executor", choices=("local", "dask"), default="local",
-                   help="local: worker processes; dask: tasks on a Dask distributed cluster")
-    p.add_argument("--scheduler", default=None, metavar="ADDRESS", help="Dask scheduler address (with --executor dask)")
-    p.add_argument("--jobs", type=int, default=1,
-                   help="local worker processes (cells side by side share the cores: their times grow)")
-    p.add_argument("--ssim", choices=tuple(SSIM_PROTOCOLS), default="3dgs", help="SSIM protocol (3dgs: paper)")
-    p.add_argument("--lpips", choices=LPIPS_NETS + ("none",), default="vgg", help="LPIPS network (vgg: paper)")
-    p.add_argument("--device", default=None, help="torch device for training (default: cuda if available, else cpu)")
-    p.add_argument("--rerun", action="store_true", help="run finished cells again (new records supersede old)")
+    add_run_arguments(p, jobs_help="local worker processes (cells side by side share the cores: their times grow)")
     p.add_argument("--dry-run", action="store_true", help="print the sweep's cells and exit")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
-    from benchmark.grid import CellOptions, make_executor, run_grid
+    from benchmark.grid import executor_from_args, options_from_args, run_grid, say_failed
     from benchmark.store import ResultsStore
     from nimbus.config_set import parse_set_args
 
@@ -505,10 +495,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"{p.knob}={p.value}{' (base)' if p.base else ''}\t{p.cell.cell_id}\t"
                   f"{','.join(f'{k}={v}' for k, v in p.cell.overrides) or '-'}")
         return 0
-    executor = make_executor(args.executor, args.jobs, args.scheduler)
-    options = CellOptions(ssim_protocol=args.ssim, lpips_net=None if args.lpips == "none" else args.lpips,
-                          device=args.device)
-    outcome = run_grid(cells, args.root, executor, options, rerun=args.rerun, progress=not args.quiet)
+    outcome = run_grid(cells, args.root, executor_from_args(args), options_from_args(args), rerun=args.rerun,
+                       progress=not args.quiet)
     records = ResultsStore(args.root).latest()
     rows = tradeoff_rows(points, records)
     if not any(r["status"] == "ok" for r in rows):
@@ -521,11 +509,8 @@ def run(args: argparse.Namespace) -> int:
     print(to_markdown(rows))
     for path in written:
         print(path)
-    if outcome.failed:
-        print(f"{len(outcome.failed)} cell(s) failed; rerun the same command to retry them "
-              f"(errors are in {args.root}/results.jsonl)", file=sys.stderr)
-        return 1
-    return 0
+    say_failed(outcome, args.root)
+    return 1 if outcome.failed else 0
 
 
 def _header(base: Cell, cells: Sequence[Cell], records: dict[str, dict]) -> list[str]:

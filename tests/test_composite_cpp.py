@@ -16,7 +16,8 @@ import warnings
 import pytest
 import torch
 
-from nimbus.render import composite_cpp
+from nimbus.kernels import extension
+from nimbus.kernels import raster
 
 MAX_ALPHA = 0.99
 MIN_ALPHA = 1.0 / 255.0
@@ -28,7 +29,7 @@ def _kernel():
     if shutil.which("c++") is None and shutil.which("g++") is None:
         pytest.skip("no C++ compiler: the compiled kernel cannot be built here")
     # With a compiler present a failed build is a bug, not a reason to skip.
-    assert composite_cpp.available(warn=False), composite_cpp.load_error()
+    assert raster.available(warn=False), raster.load_error()
 
 
 # ----------------------------------------------------------------------------- scenes
@@ -195,7 +196,7 @@ def reference_grads(a, lists, weights):
 def kernel_grads(a, weights):
     leaves = {k: a[k].detach().clone().requires_grad_() for k in GRAD_NAMES}
     absgrad = torch.zeros(a["means2d"].shape[0], 2, dtype=a["means2d"].dtype)
-    outs = composite_cpp.composite(**dict(a, **leaves), absgrad=absgrad)
+    outs = raster.composite(**dict(a, **leaves), absgrad=absgrad)
     weighted_loss(outs, weights).backward()
     return [o.detach() for o in outs], {k: leaves[k].grad for k in GRAD_NAMES}, absgrad
 
@@ -298,7 +299,7 @@ def test_edge_cases_match_reference():
     leaves = {k: a[k].clone().requires_grad_() for k in GRAD_NAMES}
     pix = torch.zeros(22, 30)
     pix[7, 10] = 1.0
-    rgb, _, alpha = composite_cpp.composite(**dict(a, **leaves))
+    rgb, _, alpha = raster.composite(**dict(a, **leaves))
     assert float(alpha[7, 10].detach()) >= MAX_ALPHA
     (alpha * pix.double()).sum().backward()
     assert float(leaves["opacities"].grad[3]) == 0.0  # clamped: no gradient to opacity or the mean
@@ -314,7 +315,7 @@ def test_zero_gaussians():
     a = inputs(make_scene(0, 20, 10, seed=4), 20, 10, 16)
     assert a["isect_ids"].numel() == 0
     check_against_reference(a, rtol=1e-12, atol=1e-12)
-    rgb, depth, alpha = composite_cpp.composite(**a)
+    rgb, depth, alpha = raster.composite(**a)
     assert torch.equal(rgb, a["background"].expand(10, 20, 3))
     assert not depth.any() and not alpha.any()
 
@@ -325,7 +326,7 @@ def test_gradcheck_float64():
     names = ("means2d", "conics", "colors", "opacities", "depths", "background")
 
     def fn(*xs):
-        return composite_cpp.composite(**dict(a, **dict(zip(names, xs))))
+        return raster.composite(**dict(a, **dict(zip(names, xs))))
 
     xs = tuple(a[k].clone().requires_grad_() for k in names)
     assert torch.autograd.gradcheck(fn, xs, eps=1e-6, atol=1e-6, rtol=1e-4)
@@ -349,23 +350,23 @@ def test_thread_count_does_not_change_results():
     assert torch.equal(abs1, abs2) and abs1.abs().sum() > 0
 
 
-@pytest.mark.parametrize("isa", composite_cpp.CPU_ISAS)
+@pytest.mark.parametrize("isa", raster.CPU_ISAS)
 def test_each_isa_clone_matches_the_reference_and_the_generic_clone_bit_for_bit(isa):
     # The clones are forced one by one (NIMBUS_CPU_ISA does the same per process), so every path is
     # checked on one machine; a clone this CPU cannot run is skipped.
-    if isa not in composite_cpp.cpu_isas():
+    if isa not in raster.cpu_isas():
         pytest.skip(f"this CPU (or build) cannot run the {isa} clone")
     a = inputs(make_scene(300, 40, 24, seed=11, dtype=torch.float32), 40, 24, 8)
     weights = output_weights(40, 24)
-    before = composite_cpp.cpu_isa()
+    before = raster.cpu_isa()
     try:
-        assert composite_cpp.set_cpu_isa("generic") == "generic"
+        assert raster.set_cpu_isa("generic") == "generic"
         o0, g0, abs0 = kernel_grads(a, weights)
-        assert composite_cpp.set_cpu_isa(isa) == isa and composite_cpp.cpu_isa() == isa
+        assert raster.set_cpu_isa(isa) == isa and raster.cpu_isa() == isa
         check_against_reference(a, rtol=1e-4, atol=2e-5)
         o1, g1, abs1 = kernel_grads(a, weights)
     finally:
-        composite_cpp.set_cpu_isa(before)
+        raster.set_cpu_isa(before)
     assert all(torch.equal(x, y) for x, y in zip(o0, o1))
     assert all(torch.equal(g0[k], g1[k]) for k in GRAD_NAMES) and torch.equal(abs0, abs1)
 
@@ -375,10 +376,10 @@ def test_absgrad_accumulates_into_caller_tensor():
     acc = torch.zeros(40, 2, dtype=torch.float64)
     for _ in range(2):
         means = a["means2d"].clone().requires_grad_()
-        rgb, _, _ = composite_cpp.composite(**dict(a, means2d=means), absgrad=acc)
+        rgb, _, _ = raster.composite(**dict(a, means2d=means), absgrad=acc)
         rgb.sum().backward()
     once = torch.zeros_like(acc)
-    rgb, _, _ = composite_cpp.composite(**dict(a, means2d=a["means2d"].clone().requires_grad_()), absgrad=once)
+    rgb, _, _ = raster.composite(**dict(a, means2d=a["means2d"].clone().requires_grad_()), absgrad=once)
     rgb.sum().backward()
     assert once.sum() > 0
     torch.testing.assert_close(acc, 2 * once)
@@ -390,21 +391,21 @@ def test_bad_tile_lists_raise_instead_of_crashing():
     bad = a["isect_ids"].clone()
     bad[0] = 10
     with pytest.raises(RuntimeError, match="isect_ids"):
-        composite_cpp.composite(**dict(a, isect_ids=bad))
+        raster.composite(**dict(a, isect_ids=bad))
     with pytest.raises(RuntimeError, match="tile_offsets"):
-        composite_cpp.composite(**dict(a, tile_offsets=a["tile_offsets"][:-1]))
+        raster.composite(**dict(a, tile_offsets=a["tile_offsets"][:-1]))
     with pytest.raises(TypeError):
-        composite_cpp.composite(**dict(a, colors=a["colors"].float()))
+        raster.composite(**dict(a, colors=a["colors"].float()))
 
 
 def test_stale_build_lock_is_removed(tmp_path):
     lock = tmp_path / "lock"
     lock.write_text("")
-    composite_cpp._clear_stale_lock(str(tmp_path))
+    extension._clear_stale_lock(str(tmp_path))
     assert lock.exists()  # a fresh lock belongs to a build in progress
-    old = lock.stat().st_mtime - 2 * composite_cpp._STALE_LOCK_S
+    old = lock.stat().st_mtime - 2 * extension._STALE_LOCK_S
     os.utime(lock, (old, old))
-    composite_cpp._clear_stale_lock(str(tmp_path))
+    extension._clear_stale_lock(str(tmp_path))
     assert not lock.exists()
 
 
@@ -416,12 +417,12 @@ def test_a_killed_build_does_not_make_later_loads_wait_forever(tmp_path, capsys,
     old = lock.stat().st_mtime - 10.0
     for f in (lock, obj):  # nothing in the folder has changed for 10 s: its build was killed
         os.utime(f, (old, old))
-    composite_cpp._wait_for_build(str(tmp_path), idle_s=5.0, poll_s=0.01)
+    extension._wait_for_build(str(tmp_path), idle_s=5.0, poll_s=0.01)
     assert not lock.exists() and "stale compiler lock" in capsys.readouterr().err
     # A build in progress keeps writing: its lock is left alone until it goes.
     lock.write_text("")
     seen = []
-    sleep = composite_cpp.time.sleep
+    sleep = extension.time.sleep
 
     def release_on_second_poll(s):
         seen.append(s)
@@ -429,31 +430,32 @@ def test_a_killed_build_does_not_make_later_loads_wait_forever(tmp_path, capsys,
             lock.unlink()
         sleep(0)
 
-    monkeypatch.setattr(composite_cpp.time, "sleep", release_on_second_poll)
-    composite_cpp._wait_for_build(str(tmp_path), idle_s=5.0, poll_s=0.01)
+    monkeypatch.setattr(extension.time, "sleep", release_on_second_poll)
+    extension._wait_for_build(str(tmp_path), idle_s=5.0, poll_s=0.01)
     assert len(seen) == 2 and not lock.exists() and capsys.readouterr().err == ""
 
 
 def test_build_failure_falls_back_with_one_warning(monkeypatch):
-    saved = dict(composite_cpp._state)
+    ext = raster.EXTENSION
+    saved = dict(ext.state)
 
     def broken_build():
         raise RuntimeError("Error building extension 'x'\nc++: fatal error: no input files")
 
-    monkeypatch.setattr(composite_cpp, "_build", broken_build)
-    composite_cpp._state.update(tried=False, ok=False, error=None, warned=False)
+    monkeypatch.setattr(ext, "build", broken_build)
+    ext.state.update(tried=False, ok=False, error=None, warned=False)
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            assert composite_cpp.available() is False
-            assert composite_cpp.available() is False
+            assert raster.available() is False
+            assert raster.available() is False
         assert len(caught) == 1 and "torch compositor" in str(caught[0].message)
-        assert "no input files" in composite_cpp.load_error()
+        assert "no input files" in raster.load_error()
     finally:
-        composite_cpp._state.clear()
-        composite_cpp._state.update(saved)
+        ext.state.clear()
+        ext.state.update(saved)
     monkeypatch.setenv("NIMBUS_DISABLE_CPP", "1")
-    assert composite_cpp.available() is False
+    assert raster.available() is False
 
 
 def test_matches_torch_compositor_when_present():

@@ -115,14 +115,14 @@ def test_synthesis_gives_the_same_data_on_each_emulated_cpu(tmp_path):
 
 
 def test_nimbus_cpu_isa_is_applied_when_the_kernel_loads_and_a_bad_value_is_an_error():
-    from nimbus.render import composite_cpp
+    from nimbus.kernels import raster
 
-    if not composite_cpp.available(warn=False):
-        pytest.skip(f"no compiled kernel here ({composite_cpp.load_error()})")
+    if not raster.available(warn=False):
+        pytest.skip(f"no compiled kernel here ({raster.load_error()})")
     code = ("from nimbus.errors import NimbusError\n"
-            "import importlib\nfrom nimbus.render import composite_cpp\nrasterize = importlib.import_module('nimbus.render.rasterize')\n"
+            "from nimbus.kernels import raster\nfrom nimbus.render import backends\n"
             "try:\n"
-            "    print(rasterize.cpp_available(), composite_cpp.cpu_isa())\n"
+            "    print(backends.available('cpp'), raster.cpu_isa())\n"
             "except NimbusError as e:\n"
             "    print('error:', e)\n")
     child = run_child(code, None, NIMBUS_CPU_ISA="generic")
@@ -130,20 +130,20 @@ def test_nimbus_cpu_isa_is_applied_when_the_kernel_loads_and_a_bad_value_is_an_e
     child = run_child(code, None, NIMBUS_CPU_ISA="avx9")
     assert child.stdout.startswith("error: NIMBUS_CPU_ISA=avx9 is not an instruction set"), child.stderr[-2000:]
     child = run_child(code, None, NIMBUS_CPU_ISA="")  # empty: the best clone, as unset
-    assert child.stdout.split() == ["True", composite_cpp.cpu_isas()[-1]], child.stderr[-2000:]
+    assert child.stdout.split() == ["True", raster.cpu_isas()[-1]], child.stderr[-2000:]
 
 
 def test_a_clone_the_cpu_cannot_run_is_refused(monkeypatch):
-    from nimbus.render import composite_cpp
+    from nimbus.kernels import raster
 
-    if not composite_cpp.available(warn=False):
-        pytest.skip(f"no compiled kernel here ({composite_cpp.load_error()})")
-    before = composite_cpp.cpu_isa()
-    monkeypatch.setattr(composite_cpp, "cpu_isas", lambda: ("generic",))
+    if not raster.available(warn=False):
+        pytest.skip(f"no compiled kernel here ({raster.load_error()})")
+    before = raster.cpu_isa()
+    monkeypatch.setattr(raster, "cpu_isas", lambda: ("generic",))
     with pytest.raises(NimbusError, match="cannot run the avx512 clone; it runs generic"):
-        composite_cpp.set_cpu_isa("avx512")
+        raster.set_cpu_isa("avx512")
     monkeypatch.setenv("NIMBUS_CPU_ISA", "avx2")
     with pytest.raises(NimbusError, match="NIMBUS_CPU_ISA=avx2"):
-        composite_cpp.available()
+        raster.available()
     monkeypatch.undo()
-    assert composite_cpp.available() and composite_cpp.cpu_isa() == before
+    assert raster.available() and raster.cpu_isa() == before

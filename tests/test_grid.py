@@ -13,15 +13,15 @@ import warnings
 import numpy as np
 import pytest
 
-from benchmark import grid
+from benchmark import cell, grid
+from benchmark.cell import CellOptions, data_dir, run_dir
 from benchmark.cli import TOOL
-from benchmark.grid import (CellOptions, DaskExecutor, InlineExecutor, LocalExecutor, build_cells, data_dir,
-                            run_dir, run_grid)
-from benchmark.metrics import psnr
+from benchmark.grid import DaskExecutor, InlineExecutor, LocalExecutor, build_cells, run_grid
 from benchmark.store import ResultsStore, load_results
 from nimbus.cli_util import run_cli
 from nimbus.data.images import read_image
 from nimbus.errors import NimbusError
+from nimbus.metrics import peak_signal_noise_ratio as psnr
 from nimbus.utils.fs import sha256_file
 
 OVERRIDES = {"iterations": "5"}
@@ -155,7 +155,7 @@ def test_crash_mid_cell_resumes_without_corrupt_records(finished, tmp_path, monk
         run_grid(cells(), root, InlineExecutor(), OPTIONS, progress=False, log=lambda s: None)
     store = ResultsStore(root)
     assert [r["cell_id"] for r in store.records()] == [first.cell_id]
-    assert (root / "runs" / (cells()[1].cell_id + grid.PARTIAL_SUFFIX)).is_dir()
+    assert (root / "runs" / (cells()[1].cell_id + cell.PARTIAL_SUFFIX)).is_dir()
     assert not run_dir(root, cells()[1]).exists()
     with open(store.path, "ab") as f:  # and a torn record from a crash while writing
         f.write(b'{"cell_id": "' + cells()[1].cell_id.encode() + b'", "sta')

@@ -1,6 +1,6 @@
 """``nimbus-bench`` against hostile use (issue 14): two runs on one root, unusable or overlapping folders.
 
-The cells here never train: ``benchmark.grid._run_cell`` is replaced by a fake that does what
+The cells here never train: ``benchmark.cell._run_cell`` is replaced by a fake that does what
 a real cell does to the file system (clear leftovers, fill ``runs/<id>.partial``, rename it into
 place) and can be held in flight, so two runners can be made to overlap without any timing.
 """
@@ -19,9 +19,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from benchmark import cell as cell_module
 from benchmark import grid
+from benchmark.cell import CellOptions, run_dir
 from benchmark.cli import TOOL
-from benchmark.grid import CellOptions, InlineExecutor, build_cells, run_dir, run_grid
+from benchmark.grid import InlineExecutor, build_cells, run_grid
 from benchmark.store import FileLock, ResultsStore, load_results
 from nimbus.cli_util import run_cli
 from nimbus.data import write_scene
@@ -40,7 +42,7 @@ def the_cell():
 
 def fake_cell(root, cell, hold=None) -> dict:
     """What a real cell does to its folders, minus the training; ``hold()`` keeps it in flight."""
-    final, partial = grid.clear_run_dirs(Path(root), cell)
+    final, partial = cell_module.clear_run_dirs(Path(root), cell)
     partial.mkdir(parents=True)
     (partial / "owner.txt").write_text(f"{os.getpid()} {threading.get_ident()}")
     if hold is not None:
@@ -155,7 +157,7 @@ def test_second_run_leaves_a_cell_in_flight_alone(tmp_path, monkeypatch):
             return fake_cell(root, c, hold=lambda: (in_flight.set(), go.wait(120)))
         return fake_cell(root, c)
 
-    monkeypatch.setattr(grid, "_run_cell", cell_fn)
+    monkeypatch.setattr(cell_module, "_run_cell", cell_fn)
     monkeypatch.setattr(grid, "prepare_data", lambda *a, **k: None)
     outcomes = {}
     a = threading.Thread(name="A", target=lambda: outcomes.setdefault(
@@ -163,7 +165,7 @@ def test_second_run_leaves_a_cell_in_flight_alone(tmp_path, monkeypatch):
     a.start()
     try:
         assert in_flight.wait(120)
-        partial = run_dir(tmp_path, cell).with_name(cell.cell_id + grid.PARTIAL_SUFFIX)
+        partial = run_dir(tmp_path, cell).with_name(cell.cell_id + cell_module.PARTIAL_SUFFIX)
         owner = (partial / "owner.txt").read_text()
         said = []
         b = run_grid([cell], tmp_path, InlineExecutor(), OPTIONS, progress=False, log=said.append)
@@ -201,7 +203,7 @@ def test_a_cell_finished_while_waiting_for_its_lock_is_not_rerun(tmp_path, monke
         return real_finished(self)
 
     monkeypatch.setattr(ResultsStore, "finished", finished)
-    monkeypatch.setattr(grid, "_run_cell", lambda *a: pytest.fail("the finished cell was run again"))
+    monkeypatch.setattr(cell_module, "_run_cell", lambda *a: pytest.fail("the finished cell was run again"))
     outcome = run_grid([cell], tmp_path, InlineExecutor(), OPTIONS, progress=False, log=lambda s: None)
     assert outcome.skipped == [cell.cell_id] and outcome.ran == [] and run_dir(tmp_path, cell).is_dir()
 
@@ -217,7 +219,7 @@ def test_data_preparation_waits_for_another_run_preparing_it(tmp_path):
     other = ResultsStore(tmp_path).data_lock(cell.data_name)
     assert other.acquire()
     said = []
-    t = threading.Thread(target=grid.prepare_data, args=(tmp_path, [cell]), kwargs={"log": said.append})
+    t = threading.Thread(target=cell_module.prepare_data, args=(tmp_path, [cell]), kwargs={"log": said.append})
     t.start()
     try:
         wait_for(lambda: said, "the waiting message")
@@ -231,7 +233,7 @@ def test_data_preparation_waits_for_another_run_preparing_it(tmp_path):
 RUNNER_A = textwrap.dedent("""
     import os, sys, time
     from pathlib import Path
-    from benchmark import grid
+    from benchmark import cell, grid
     from benchmark.cli import TOOL
     from nimbus.cli_util import run_cli
     sys.path.insert(0, os.path.join(sys.argv[1], "tests"))
@@ -241,10 +243,9 @@ RUNNER_A = textwrap.dedent("""
     def hold():
         while not go.exists():
             time.sleep(0.05)
-    grid._run_cell = lambda cell, root, options: fake_cell(root, cell, hold=hold)
+    cell._run_cell = lambda c, root, options: fake_cell(root, c, hold=hold)
     grid.prepare_data = lambda *a, **k: None
-    import benchmark.run
-    benchmark.run.make_executor = lambda *a: grid.InlineExecutor()  # the fake cell lives in this process
+    grid.make_executor = lambda *a: grid.InlineExecutor()  # the fake cell lives in this process
     sys.exit(run_cli(TOOL.run, sys.argv[3:]))
 """)
 
@@ -256,12 +257,12 @@ def test_two_cli_runs_on_one_root(tmp_path, monkeypatch, capsys):
     cell = the_cell()
     a = subprocess.Popen([sys.executable, "-c", RUNNER_A, str(REPO), str(go), *RUN_ARGS, "--root", str(root)],
                          cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    partial = run_dir(root, cell).with_name(cell.cell_id + grid.PARTIAL_SUFFIX)
+    partial = run_dir(root, cell).with_name(cell.cell_id + cell_module.PARTIAL_SUFFIX)
     try:
         wait_for(lambda: (partial / "owner.txt").exists() or a.poll() is not None, "runner A's cell")
         assert a.poll() is None, a.communicate()
         owner = (partial / "owner.txt").read_text()
-        monkeypatch.setattr(grid, "_run_cell", lambda *args: pytest.fail("B ran A's cell"))
+        monkeypatch.setattr(cell_module, "_run_cell", lambda *args: pytest.fail("B ran A's cell"))
         monkeypatch.setattr(grid, "prepare_data", lambda *args, **k: None)
         rc = run_cli(TOOL.run, RUN_ARGS + ["--root", str(root)])
         out, err = capsys.readouterr()

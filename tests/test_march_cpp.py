@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from nimbus.errors import NimbusError
-from nimbus.nimbusgs import march_cpp
+from nimbus.kernels import march as march_kernel
 from nimbus.nimbusgs.scattering import Box, ExtinctionGrid, UniformExtinction, march, march_reference
 
 
@@ -17,7 +17,7 @@ def kernel():
     if shutil.which("c++") is None and shutil.which("g++") is None:
         pytest.skip("no C++ compiler: the compiled kernel cannot be built here")
     # With a compiler present a failed build is a bug, not a reason to skip.
-    assert march_cpp.available(), "compiled library unavailable"
+    assert march_kernel.available(), "compiled library unavailable"
 
 
 def _grid(dtype, resolution=(5, 6, 7), seed=0, std=1.5):
@@ -78,7 +78,7 @@ def test_compiled_march_gradcheck(kernel):
     grid, (origin, dirs, ts, te) = _grid(torch.float64, (3, 4, 5)), _rays(torch.float64, n=12)
     feats = grid.features.detach().clone().requires_grad_()
     torch.autograd.gradcheck(
-        lambda f: march_cpp.grid_optical_depth(f, grid.lo, grid.hi, origin, dirs, ts, te, 5), (feats,))
+        lambda f: march_kernel.grid_optical_depth(f, grid.lo, grid.hi, origin, dirs, ts, te, 5), (feats,))
 
 
 def test_compiled_march_does_not_depend_on_thread_count_beyond_rounding(kernel):

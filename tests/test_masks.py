@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 import torch
 
-from benchmark.metrics import Scorer, psnr as bench_psnr, ssim as bench_ssim
+from benchmark.metrics import Scorer
 from nimbus.data.builtin import render_builtin
 from nimbus.errors import NimbusError
-from nimbus.losses import l1, photometric_loss, psnr, ssim
+from nimbus.losses import l1, photometric_loss
+from nimbus.metrics import mean_ssim, peak_signal_noise_ratio, structural_similarity
 from nimbus.render.gaussians import Gaussians
 from nimbus.render.rasterize import means2d_grad, rasterize
 from nimbus.train.config import TrainConfig, preset
@@ -43,10 +44,16 @@ def test_masked_loss_equals_the_loss_on_the_valid_crop():
     mask = torch.from_numpy(_rect_mask())
     crop_p, crop_g = pred[ROWS, COLS], gt[ROWS, COLS]
     assert float(l1(pred, gt, mask)) == pytest.approx(float(l1(crop_p, crop_g)), rel=1e-12)
-    assert float(ssim(pred, gt, mask)) == pytest.approx(float(ssim(crop_p, crop_g)), rel=1e-12)
+    assert float(mean_ssim(pred, gt, mask)) == pytest.approx(float(mean_ssim(crop_p, crop_g)), rel=1e-12)
     assert float(photometric_loss(pred, gt, 0.2, mask)) == pytest.approx(
         float(photometric_loss(crop_p, crop_g, 0.2)), rel=1e-12)
-    assert psnr(pred, gt, mask) == pytest.approx(psnr(crop_p, crop_g), rel=1e-6)
+    assert peak_signal_noise_ratio(pred, gt, quantize=False, mask=mask) == pytest.approx(
+        peak_signal_noise_ratio(crop_p, crop_g, quantize=False), rel=1e-6)
+    # the torch metrics: the 8-bit round trip, then the same masked means
+    assert structural_similarity(pred, gt, mask=mask) == pytest.approx(
+        structural_similarity(crop_p, crop_g), rel=1e-6)
+    assert peak_signal_noise_ratio(pred, gt, mask=mask) == pytest.approx(
+        peak_signal_noise_ratio(crop_p, crop_g), rel=1e-6)
     # a batch shares the mask
     batch_p, batch_g = torch.stack([pred, gt]), torch.stack([gt, pred.flip(0)])
     assert float(photometric_loss(batch_p, batch_g, 0.2, mask)) == pytest.approx(
@@ -148,52 +155,61 @@ def test_trainer_scores_masked_test_views_over_valid_pixels(tmp_path):
 
 @pytest.mark.slow
 def test_masked_out_corruption_does_not_hurt_training(tmp_path):
-    """Half of every training image is noise.  Masked out, the test PSNR stays near the clean run's;
-    trained on, it drops by several dB (measured at 400 iterations: clean 19.7, masked 18.7, unmasked 15.9 dB)."""
+    """A magenta occluder (a third of the width, half the height) stands at a random place in every training
+    image, like a passer-by.  Masked out, the test PSNR stays near the clean run's; trained on, it drops.
+
+    Measured at 400 iterations on an AVX2 machine, seeds 0 / 1 / 2 (seeds 1 and 2 chose the margins):
+    clean 20.12 / 20.06 / 20.11, masked 19.65 / 19.65 / 19.58, unmasked 18.10 / 17.93 / 18.28 dB.  An earlier
+    version corrupted the right half of every image with noise; its masked run lost 1.0 to 2.7 dB to the clean
+    one depending on the seed and the CPU (that half of the scene had too little supervision left), so the test
+    measured chance rather than the mask.
+    """
     s = render_builtin("garden", size="tiny", seed=0)
     cfg = dataclasses.replace(preset("tiny").rescaled(400), sh_degree=0)
     rng = np.random.default_rng(0)
 
-    def corrupt(view, use_mask):
+    def occlude(view, use_mask):
         img = view.load_image().copy()
         h, w = img.shape[:2]
-        img[:, w // 2:] = rng.random((h, w - w // 2, 3), dtype=np.float32)
+        y, x = int(rng.integers(0, h - h // 2)), int(rng.integers(0, w - w // 3))
+        img[y:y + h // 2, x:x + w // 3] = (1.0, 0.0, 1.0)
         m = np.ones((h, w), bool)
-        m[:, w // 2:] = False
+        m[y:y + h // 2, x:x + w // 3] = False
         return dataclasses.replace(view, image=img, image_path=None, mask=m if use_mask else None, mask_path=None)
 
     def run(kind):
-        views = [v if v.name in s.test_names or kind == "clean" else corrupt(v, kind == "masked") for v in s.views]
+        views = [v if v.name in s.test_names or kind == "clean" else occlude(v, kind == "masked") for v in s.views]
         return GaussianTrainer(dataclasses.replace(s, views=tuple(views)), cfg, tmp_path / kind, seed=0,
                                progress=False).train()["psnr"]
 
     clean, masked, unmasked = run("clean"), run("masked"), run("unmasked")
-    assert masked > clean - 1.5, (clean, masked, unmasked)
-    assert unmasked < masked - 2.0, (clean, masked, unmasked)
+    assert masked > clean - 1.0, (clean, masked, unmasked)
+    assert unmasked < masked - 0.8, (clean, masked, unmasked)
 
 
 # --- the benchmark's metrics ---------------------------------------------------------------
 def test_masked_metrics_ignore_garbage_and_match_the_crop():
+    psnr, ssim = peak_signal_noise_ratio, structural_similarity
     pred, gt = (x.float().numpy() for x in _pair(2))
     mask = _rect_mask()
     rng = np.random.default_rng(3)
     other = np.where(mask[..., None], pred, rng.random(pred.shape, dtype=np.float32))
-    assert bench_psnr(pred, gt, mask=mask) == bench_psnr(other, gt, mask=mask)
-    assert bench_ssim(pred, gt, mask=mask) == bench_ssim(other, gt, mask=mask)
-    assert bench_psnr(pred, gt, mask=mask) == pytest.approx(bench_psnr(pred[ROWS, COLS], gt[ROWS, COLS]), rel=1e-9)
-    assert bench_ssim(pred, gt, mask=mask) == pytest.approx(bench_ssim(pred[ROWS, COLS], gt[ROWS, COLS]), rel=1e-9)
+    assert psnr(pred, gt, mask=mask) == psnr(other, gt, mask=mask)
+    assert ssim(pred, gt, mask=mask) == ssim(other, gt, mask=mask)
+    assert psnr(pred, gt, mask=mask) == pytest.approx(psnr(pred[ROWS, COLS], gt[ROWS, COLS]), rel=1e-9)
+    assert ssim(pred, gt, mask=mask) == pytest.approx(ssim(pred[ROWS, COLS], gt[ROWS, COLS]), rel=1e-9)
     for proto in ("skimage", "dmpix"):  # the border those protocols drop is dropped from the mask too
-        assert bench_ssim(pred, gt, proto, mask=mask) == bench_ssim(other, gt, proto, mask=mask)
-    assert bench_psnr(other, gt) < bench_psnr(pred, gt, mask=mask) - 3
+        assert ssim(pred, gt, protocol=proto, mask=mask) == ssim(other, gt, protocol=proto, mask=mask)
+    assert psnr(other, gt) < psnr(pred, gt, mask=mask) - 3
 
 
 def test_scorer_records_masks_and_lpips_ignores_masked_pixels():
     torch.manual_seed(0)
-    from benchmark.lpips import LPIPSNetwork
+    from nimbus.metrics.lpips_network import LPIPSNetwork
 
     lp = None
     try:
-        from benchmark.metrics import LPIPS
+        from nimbus.metrics import LPIPS
         net = LPIPSNetwork("alex")
         lp = LPIPS("alex", device="cpu", state_dict={k: torch.randn_like(v) * 0.1 if v.is_floating_point() else v
                                                      for k, v in net.state_dict().items()}, backend="torch")

@@ -1,4 +1,5 @@
-"""PSNR / SSIM protocols against closed forms, scikit-image and a direct (loop) implementation; score_images."""
+"""nimbus.metrics PSNR / SSIM: protocols against closed forms, scikit-image and a direct (loop) implementation;
+the torch path against training's former functions; the benchmark's score_images."""
 
 from __future__ import annotations
 
@@ -9,11 +10,16 @@ import numpy as np
 import pytest
 import torch
 
-from benchmark import metrics
-from benchmark.lpips import random_state_dict
-from benchmark.metrics import LPIPS, psnr, quantize_8bit, score_images, ssim
+from benchmark.metrics import score_images
 from nimbus.errors import NimbusError
-from nimbus.losses import ssim_map
+from nimbus.metrics import (LPIPS, SSIM_PROTOCOLS, mean_ssim, peak_signal_noise_ratio, quantize_8bit,
+                            random_state_dict, ssim_map, structural_similarity)
+
+psnr = peak_signal_noise_ratio  # short names for the many calls below
+
+
+def ssim(pred, gt, protocol="3dgs", **kwargs):
+    return structural_similarity(pred, gt, protocol=protocol, **kwargs)
 
 
 def smooth_pair(h: int, w: int, seed: int = 0, noise: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
@@ -106,7 +112,7 @@ def test_ssim_skimage_protocol_matches_scikit_image(shape):
 def test_3dgs_protocol_is_the_trainers_ssim_map_and_cropping_gives_skimage():
     pred, gt = smooth_pair(40, 52, seed=3)
     x, y = torch.from_numpy(quantize_8bit(pred)).double(), torch.from_numpy(quantize_8bit(gt)).double()
-    m = ssim_map(x, y)  # nimbus.losses: the same SSIM the trainers optimise
+    m = ssim_map(x, y)  # the same SSIM the training loss optimises
     assert ssim(pred, gt, "3dgs") == pytest.approx(m.mean().item(), abs=1e-12)
     # The notes' observation: dropping a 5 px border of the 3dgs map gives skimage's value.
     assert ssim(pred, gt, "skimage") == pytest.approx(m[..., 5:-5, 5:-5].mean().item(), abs=1e-12)
@@ -116,7 +122,7 @@ def test_3dgs_protocol_is_the_trainers_ssim_map_and_cropping_gives_skimage():
     assert ssim(pred, gt, "3dgs") == pytest.approx(m32, abs=2e-4)
 
 
-@pytest.mark.parametrize("protocol", list(metrics.SSIM_PROTOCOLS))
+@pytest.mark.parametrize("protocol", list(SSIM_PROTOCOLS))
 def test_ssim_identity_symmetry_and_batch(protocol):
     pred, gt = smooth_pair(24, 20, seed=4)
     assert ssim(gt, gt, protocol) == pytest.approx(1.0, abs=1e-12)
@@ -136,6 +142,72 @@ def test_ssim_bad_input_is_a_clear_error():
         ssim(pred[:8, :8], gt[:8, :8])
     with pytest.raises(NimbusError, match=r"\(H, W, 3\)"):
         psnr(pred[..., 0], gt[..., 0])
+
+
+# --- the torch path (training's evaluation) --------------------------------------------------
+def _torch_pair(seed: int, h: int = 24, w: int = 32) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A float32 render and target (H, W, 3), with values outside [0, 1] and on 8-bit half steps, and a mask."""
+    g = torch.Generator().manual_seed(seed)
+    gt = torch.rand(h, w, 3, generator=g)
+    pred = gt + 0.1 * torch.randn(h, w, 3, generator=g)
+    pred[0, :8, 0] = (torch.arange(8) + 0.5) / 255  # exactly halfway between two 8-bit steps (or as near as float32 is)
+    mask = torch.rand(h, w, generator=g) > 0.3
+    return pred, gt, mask
+
+
+# removed at merge, with nimbus.losses.psnr / ssim and nimbus.train.trainer.quantize_8bit: the check that
+# the replacements give the trainer's figures (results.json, the training log) bit for bit.
+@pytest.mark.parametrize("masked", [False, True])
+def test_torch_metrics_are_bit_identical_to_the_trainers_former_scoring(masked):
+    from nimbus.losses import psnr as old_psnr, ssim as old_ssim
+    from nimbus.train.trainer import quantize_8bit as old_quantize_8bit
+
+    for seed in range(3):
+        pred, gt, mask = _torch_pair(seed)
+        mask = mask if masked else None
+        p, g = quantize_8bit(pred), quantize_8bit(gt)
+        assert torch.equal(p, old_quantize_8bit(pred)) and torch.equal(g, old_quantize_8bit(gt))
+        # evaluate(): both quantised already
+        assert psnr(p, g, quantize=False, mask=mask) == old_psnr(p, g, mask)
+        assert ssim(p, g, quantize=False, mask=mask) == float(old_ssim(p, g, mask))
+        # the same through the metrics' own round trip
+        assert psnr(pred, gt, mask=mask) == old_psnr(p, g, mask)
+        assert ssim(pred, gt, mask=mask) == float(old_ssim(p, g, mask))
+        # the training log: no round trip
+        assert psnr(pred, gt, quantize=False, mask=mask) == old_psnr(pred, gt, mask)
+
+
+def test_torch_quantize_rounds_and_clips():
+    x = torch.tensor([0.0, 1.49 / 255, 1.51 / 255, 1.2, -0.3])
+    np.testing.assert_allclose((quantize_8bit(x) * 255).numpy(), [0, 1, 2, 255, 0], atol=1e-4)
+    assert quantize_8bit(x.double()).dtype == torch.float64
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_torch_and_numpy_paths_agree(masked):
+    pred, gt = smooth_pair(40, 52, seed=5)
+    mask = np.zeros((40, 52), bool)
+    mask[3:30, 5:47] = True
+    m = mask if masked else None
+    tm = torch.from_numpy(mask) if masked else None
+    tp, tg = torch.from_numpy(pred), torch.from_numpy(gt)
+    assert ssim(tp, tg, mask=tm) == pytest.approx(ssim(pred, gt, mask=m), abs=1e-5)
+    assert psnr(tp, tg, mask=tm) == pytest.approx(psnr(pred, gt, mask=m), abs=1e-4)
+    assert ssim(tp, tg, mask=tm) == float(mean_ssim(quantize_8bit(tp), quantize_8bit(tg), tm))
+
+
+def test_torch_bad_input_is_a_clear_error():
+    pred, gt, mask = _torch_pair(0)
+    with pytest.raises(NimbusError, match="3dgs protocol only, not 'skimage'"):
+        ssim(pred, gt, "skimage")
+    with pytest.raises(NimbusError, match=r"must be \(H, W, 3\) RGB"):
+        psnr(pred[None], gt[None])
+    with pytest.raises(NimbusError, match="differ in shape"):
+        psnr(pred[:10], gt)
+    with pytest.raises(NimbusError, match="mask shape"):
+        ssim(pred, gt, mask=mask[:10])
+    # the zero-padded 3dgs map needs no full window (training evaluated small images so before)
+    assert ssim(pred[:8, :8], gt[:8, :8]) < 1
 
 
 # --- score_images ----------------------------------------------------------------------------

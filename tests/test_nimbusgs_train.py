@@ -129,13 +129,13 @@ def test_scored_render_is_the_clean_image(hazy, tmp_path):
 def test_medium_is_the_same_with_the_compiled_and_the_torch_march(hazy, tmp_path, monkeypatch):
     import dataclasses
 
-    from nimbus.nimbusgs import march_cpp
+    from nimbus.kernels import march as march_kernel
 
-    if not march_cpp.available():
+    if not march_kernel.available():
         pytest.skip("compiled kernel unavailable (see tests/test_march_cpp.py)")
     calls = []
-    kernel = march_cpp.grid_optical_depth
-    monkeypatch.setattr(march_cpp, "grid_optical_depth", lambda *a: calls.append(1) or kernel(*a))
+    kernel = march_kernel.grid_optical_depth
+    monkeypatch.setattr(march_kernel, "grid_optical_depth", lambda *a: calls.append(1) or kernel(*a))
     t = NimbusTrainer(hazy, _cfg(), tmp_path / "run", seed=0, progress=False)
     with torch.no_grad():
         render = t.render(t.train_views[0])

@@ -20,7 +20,11 @@ from nimbus.render import (
     rasterize,
     reference,
 )
+from nimbus.render import backends
 from nimbus.render import gaussians as gaussians_module
+from nimbus.render.backends import cpp as cpp_backend
+from nimbus.render.backends import torch as torch_backend
+from nimbus.render.backends.base import Backend
 from nimbus.render.binning import bin_gaussians, tile_rects
 from nimbus.render.composite_torch import CompositeConfig, composite
 from nimbus.render.gaussians import knn_mean_distance
@@ -409,10 +413,10 @@ def test_backend_selection(monkeypatch):
     with pytest.raises(NimbusError, match="unknown rasterizer backend"):
         rasterize(gs, CAM, backend="opengl")
     with pytest.raises(NimbusError, match="gsplat"):
-        if rasterize_module.gsplat_available():
+        if backends.available("gsplat", "cuda"):
             pytest.skip("gsplat and CUDA are available here")
         rasterize(gs, CAM, backend="gsplat")
-    monkeypatch.setattr(rasterize_module, "cpp_available", lambda: False)
+    monkeypatch.setattr(cpp_backend, "kernel_available", lambda: False)
     rgb, _, _, meta = rasterize(gs, CAM, backend="auto", config=SMALL)
     assert meta["backend"] == "torch"
     torch.testing.assert_close(rgb, rasterize(gs, CAM, backend="torch", config=SMALL)[0])
@@ -420,8 +424,78 @@ def test_backend_selection(monkeypatch):
         rasterize(gs, CAM, backend="cpp")
 
 
+def _fake_rasterize(gaussians, viewmat, K, width, height, sh_degree, background, config, absgrad):
+    rgb, depth, alpha, meta = torch_backend.rasterize(gaussians, viewmat, K, width, height, sh_degree, background,
+                                                      config, absgrad)
+    return 1 - rgb, depth, alpha, dict(meta, backend="fake")
+
+
+# A backend is one module defining a Backend and one line in backends.REGISTRY: here, this module.
+FAKE_BACKEND = Backend(name="fake", rasterize=_fake_rasterize, available=lambda device: True)
+
+
+def test_a_backend_is_one_definition_and_one_registry_line(monkeypatch):
+    monkeypatch.setitem(backends.REGISTRY, "fake", f"{__name__}:FAKE_BACKEND")
+    gs = make_gaussians(12, seed=40).requires_grad_()
+    rgb, _, _, meta = rasterize(gs, CAM, background=BG, backend="fake", config=SMALL)
+    ref, _, _, ref_meta = rasterize(gs, CAM, background=BG, backend="torch", config=SMALL)
+    assert meta["backend"] == "fake"
+    torch.testing.assert_close(rgb, 1 - ref)
+    rgb.sum().backward()
+    assert meta["means2d"].grad.shape == (12, 2)
+    # Without auto_rank it is never chosen by "auto"; it does not collect absgrad, and says so by name.
+    assert rasterize(gs, CAM, backend="auto", config=SMALL)[3]["backend"] != "fake"
+    with pytest.raises(NimbusError, match="backend 'fake' does not collect absgrad"):
+        rasterize(gs, CAM, backend="fake", absgrad=torch.zeros(12, 2, dtype=torch.float64))
+    monkeypatch.delitem(backends.REGISTRY, "fake")
+    with pytest.raises(NimbusError, match="unknown rasterizer backend 'fake'; choose one of auto, torch, cpp, gsplat"):
+        rasterize(gs, CAM, backend="fake")
+
+
+@pytest.mark.parametrize("name", list(backends.REGISTRY))
+def test_every_backend_returns_the_same_meta(name):
+    device = "cuda" if name == "gsplat" else "cpu"
+    if not backends.available(name, device):
+        pytest.skip(f"backend {name} is not available here")
+    n = 28
+    gs = with_edge_cases(make_gaussians(20, seed=41, dtype=torch.float32)).to(device).requires_grad_()
+    rgb, depth, alpha, meta = rasterize(gs, CAM, background=BG, backend=name, config=DEFAULT)
+    assert set(meta) == {"means2d", "radii", "depths", "visible", "num_intersections", "backend", "width", "height"}
+    assert meta["backend"] == name and (meta["width"], meta["height"]) == (W, H)
+    assert rgb.shape == (H, W, 3) and depth.shape == (H, W) and alpha.shape == (H, W)
+    assert meta["means2d"].shape == (n, 2) and meta["depths"].shape == (n,)
+    assert meta["radii"].shape == (n,) and meta["radii"].dtype == torch.int32
+    assert meta["visible"].shape == (n,) and meta["visible"].dtype == torch.bool
+    assert isinstance(meta["num_intersections"], int)
+    (rgb.sum() + alpha.sum()).backward()
+    grad = meta["means2d"].grad
+    assert grad is not None and grad.shape == (n, 2) and grad.abs().sum() > 0
+    assert (grad[~meta["visible"]] == 0).all()  # culled Gaussians keep their row, with zero gradient
+    assert rasterize_module.means2d_grad(meta) is grad
+
+
+def test_gsplats_means2d_becomes_n_by_2_with_its_gradient():
+    from nimbus.render.backends.gsplat import first_camera
+
+    x = torch.randn(5, 2, dtype=torch.float64, requires_grad=True)
+    batched = (x * 3)[None]  # gsplat's [1, N, 2], consumed by its rasterizer
+    flat = first_camera(batched)
+    assert flat.shape == (5, 2)
+    w = torch.randn(1, 5, 2, dtype=torch.float64)
+    for _ in range(2):  # added up over backward passes, as a retained gradient is
+        (batched * w).sum().backward(retain_graph=True)
+    torch.testing.assert_close(flat.grad, 2 * w[0])
+    assert first_camera(batched.detach()).grad is None
+
+
+def test_absgrad_is_refused_by_name_where_it_is_not_collected():
+    gs = make_gaussians(6, seed=42)
+    with pytest.raises(NimbusError, match="backend 'torch' does not collect absgrad .backends that do: cpp"):
+        rasterize(gs, CAM, backend="torch", absgrad=torch.zeros(6, 2, dtype=torch.float64))
+
+
 def test_cpp_backend_matches_torch_when_available():
-    if not rasterize_module.cpp_available():
+    if not backends.available("cpp"):
         pytest.skip("C++ compositing kernel not available")
     gs = with_edge_cases(make_gaussians(30, seed=13, dtype=torch.float32)).requires_grad_()
     a = rasterize(gs, CAM, background=BG, backend="cpp", config=DEFAULT)
@@ -433,24 +507,24 @@ def test_cpp_backend_matches_torch_when_available():
 
 
 def _needs_cpp():
-    if not rasterize_module.cpp_available():
+    if not backends.available("cpp"):
         pytest.skip("C++ kernel not available")
-    from nimbus.render import composite_cpp
+    from nimbus.kernels import raster
 
-    return composite_cpp
+    return raster
 
 
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
 def test_cpp_projection_and_shading_match_torch_autograd_float64(degree):
-    composite_cpp = _needs_cpp()
+    raster = _needs_cpp()
     gs = with_edge_cases(make_gaussians(40, seed=20 + degree, dtype=torch.float64)).requires_grad_()
     gs.quats.data[3] = 0.0  # a zero quaternion: the norm clamp's gradient path
     viewmat, K, _, _ = rasterize_module.camera_tensors(CAM, torch.float64)
     cfg = ProjectionConfig()
-    ours = composite_cpp.project_and_shade(gs.means, gs.quats, gs.log_scales, gs.opacity_logits, gs.sh_dc,
+    ours = raster.project_and_shade(gs.means, gs.quats, gs.log_scales, gs.opacity_logits, gs.sh_dc,
                                            gs.sh_rest, viewmat, K, W, H, degree, cfg)
     proj = project_gaussians(gs.means, gs.quats, gs.log_scales, viewmat, K, W, H, cfg)
-    ref = rasterize_module.project_and_shade(gs, viewmat, K, W, H, degree, cfg)
+    ref = torch_backend.project_and_shade(gs, viewmat, K, W, H, degree, cfg)
     n, vis = len(gs), ref.visible_ids
 
     def full(v):
@@ -474,7 +548,7 @@ def test_cpp_projection_and_shading_match_torch_autograd_float64(degree):
 
 
 def test_cpp_binning_equals_torch_binning():
-    composite_cpp = _needs_cpp()
+    raster = _needs_cpp()
     for dtype in (torch.float32, torch.float64):
         gs = with_edge_cases(make_gaussians(60, seed=31, dtype=dtype))
         viewmat, K, _, _ = rasterize_module.camera_tensors(CAM, dtype)
@@ -482,10 +556,10 @@ def test_cpp_binning_equals_torch_binning():
         proj.depths[5] = proj.depths[9]  # a depth tie, broken by index on both paths
         for tile in (4, TILE, 16):
             ids_t, off_t = bin_gaussians(proj.means2d, proj.radii, proj.depths, W, H, tile)
-            ids_c, off_c = composite_cpp.bin_gaussians(proj.means2d, proj.radii, proj.depths, W, H, tile)
+            ids_c, off_c = raster.bin_gaussians(proj.means2d, proj.radii, proj.depths, W, H, tile)
             assert ids_t.numel() > 0
             assert torch.equal(ids_c, ids_t) and torch.equal(off_c, off_t)
-        empty = composite_cpp.bin_gaussians(proj.means2d, torch.zeros_like(proj.radii), proj.depths, W, H, TILE)
+        empty = raster.bin_gaussians(proj.means2d, torch.zeros_like(proj.radii), proj.depths, W, H, TILE)
         assert empty[0].numel() == 0 and not empty[1].any()
 
 

@@ -23,10 +23,10 @@ from benchmark.reference import (CONTENT_GRID, CROSS_CPU_TOLERANCE, REGRESSION_G
                                  load_reference, make_reference, notes, run_regression)
 from nimbus.data.images import write_image
 from benchmark.store import ResultsStore, load_results
-from benchmark.weights import weights_path
 from nimbus.cli_util import run_cli
 from nimbus.errors import NimbusError
-from nimbus.render.rasterize import cpp_available
+from nimbus.metrics import weights_path
+from nimbus.render import backends
 
 UPDATE = "nimbus-bench reference update --regression"
 
@@ -40,7 +40,7 @@ def test_tiny_benchmark_matches_the_committed_references(tmp_path):
         f"{REGRESSION_REFERENCE} does not hold the cells of REGRESSION_GRID; run `{UPDATE}`")
     df = run_regression(tmp_path / "bench")
     problems = compare(df, reference)
-    if problems and not cpp_available():
+    if problems and not backends.available("cpp"):
         problems.append("the C++ kernels could not be built here; the references were recorded with them")
     assert not problems, ("\n" + diff_table(df, reference) + "\n" + "\n".join(problems)
                           + f"\nIf the change is deliberate, run `{UPDATE}` and commit the reference file's diff.")

@@ -13,7 +13,7 @@ import torch
 
 from benchmark import stability
 from benchmark.cli import TOOL
-from benchmark.grid import make_config
+from benchmark.cell import make_config
 from benchmark.stability import CASES, COLUMNS, StabilityCase, get_cases
 from nimbus.cli_util import run_cli
 from nimbus.errors import NimbusError
@@ -152,6 +152,24 @@ def test_crash_and_unflagged_nan_fail_the_report(tmp_path, monkeypatch, capsys):
     assert nan["outcome"] == "finished" and nan["nan_seen"] == "yes" and "parameters" in nan["nan_where"]
     assert nan["verdict"] == "FAIL: NaN / inf without a clear error"
     assert "Traceback" in json.loads((out / "stability.json").read_text())["rows"][0]["traceback"]
+
+
+class _NaNThenClearError(GaussianTrainer):
+    def train(self):
+        with torch.no_grad():
+            self.params.tensors["opacity_logits"][0] = float("nan")
+        raise NimbusError("the loss became NaN")
+
+
+def test_a_model_whose_training_failed_is_still_checked(tmp_path, monkeypatch, capsys):
+    _register(monkeypatch, "nan-then-error", _NaNThenClearError)
+    monkeypatch.setattr(stability, "CASES", (StabilityCase("clean", "the clean scene", methods=("nan-then-error",)),))
+    out = tmp_path / "report"
+    assert run_cli(TOOL.run, ["stability", "--out", str(out), "--work", str(tmp_path / "work")] + FAST) == 0, \
+        capsys.readouterr().err
+    row = _read_csv(out / "stability.csv")[0]
+    assert (row["outcome"], row["stage"], row["message"]) == ("clear error", "training", "the loss became NaN")
+    assert row["nan_seen"] == "yes" and "parameters" in row["nan_where"] and row["verdict"] == "ok"
 
 
 @pytest.mark.parametrize("argv, message", [

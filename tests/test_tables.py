@@ -10,7 +10,10 @@ import pytest
 
 from benchmark.cli import TOOL
 from benchmark.store import ResultsStore, load_results
-from benchmark.tables import comparison_tables, rank_marks, summary_table, to_csv, to_latex, to_markdown
+from benchmark.tables.comparison import tables as comparison_tables
+from benchmark.tables.model import rank_marks
+from benchmark.tables.summary import summary_table
+from benchmark.tables.writer import to_csv, to_latex, to_markdown
 from nimbus.cli_util import run_cli
 from nimbus.errors import NimbusError
 
@@ -50,7 +53,7 @@ def store_root(tmp_path):
 
 @pytest.fixture
 def tables(store_root):
-    return {t.weather: t for t in comparison_tables(load_results(store_root), ["nimbus", "3dgs"])}
+    return {t.layout: t for t in comparison_tables(load_results(store_root), ["nimbus", "3dgs"])[0]}
 
 
 def test_rank_marks():
@@ -65,14 +68,14 @@ def test_rank_marks():
 def test_tables_from_store(tables):
     assert list(tables) == ["H", "R"]  # error-only setting S has no table
     h = tables["H"]
-    assert h.methods == ["nimbus", "3dgs", "restore+3dgs"] and h.scenes == ["garden", "street"]
-    assert h.values[("nimbus", "Average", "psnr")] == pytest.approx(22.0)
+    assert h.blocks[0].labels == ["nimbus", "3dgs", "restore+3dgs"] and h.groups == ["garden", "street", "Average"]
+    assert h.row("nimbus").values[("Average", "psnr")] == pytest.approx(22.0)
     assert h.marks("Average", "psnr") == [1, 2, None]
     assert h.marks("garden", "ssim") == [1, None, 2]
     assert h.marks("street", "lpips") == [1, None, 2]
     r = tables["R"]
-    assert r.values[("nimbus", "Average", "psnr")] is None  # a missing scene leaves the average empty
-    assert r.values[("3dgs", "Average", "psnr")] == pytest.approx(23.0)
+    assert r.row("nimbus").values[("Average", "psnr")] is None  # a missing scene leaves the average empty
+    assert r.row("3dgs").values[("Average", "psnr")] == pytest.approx(23.0)
 
 
 def _latex_rows(tex: str) -> list[str]:
@@ -108,8 +111,7 @@ def test_latex_structure_and_marks(tables):
 
 def test_latex_missing_and_escaped(tables):
     t = tables["R"]
-    t.methods[0] = "nimbus_v2"
-    t.values.update({("nimbus_v2", k[1], k[2]): v for k, v in t.values.items() if k[0] == "nimbus"})
+    t.blocks[0].rows[0].label = "nimbus_v2"
     tex = to_latex(t)
     row = _latex_rows(tex)[0].strip()
     assert row.startswith(r"nimbus\_v2")
@@ -145,9 +147,9 @@ def test_seeds_are_averaged_and_mixed_protocols_refused(tmp_path):
     store = ResultsStore(tmp_path / "a")
     for r in records(seeds=(0, 1)):
         store.append(r)
-    (h, _) = comparison_tables(load_results(tmp_path / "a"))
-    assert h.values[("nimbus", "garden", "psnr")] == pytest.approx(21.5)
-    assert h.seeds[("nimbus", "garden")] == 2
+    (h, _), _ = comparison_tables(load_results(tmp_path / "a"))
+    assert h.row("nimbus").values[("garden", "psnr")] == pytest.approx(21.5)
+    assert h.row("nimbus").group_fields["garden"]["seeds"] == 2
     store = ResultsStore(tmp_path / "b")
     for r in records() + [dict(records("dmpix")[0], cell_id="other")]:
         store.append(r)
@@ -208,11 +210,9 @@ def test_reference_check_and_update(store_root, tmp_path, capsys):
 
 def test_paper_reference_tables_and_their_marks():
     """The transcribed paper tables are complete, and our best / second-best rule reproduces the paper's marks."""
-    from pathlib import Path
+    from benchmark.data import PAPER_DIR as folder
+    from benchmark.tables.results import METRIC_COLUMNS
 
-    from benchmark.tables import DECIMALS, HIGHER_IS_BETTER
-
-    folder = Path(__file__).resolve().parents[1] / "tables" / "reference"
     labels = {}
     disagree = []
     for f in sorted(folder.glob("*.csv")):
@@ -224,10 +224,71 @@ def test_paper_reference_tables_and_their_marks():
         assert list(by_scene)[-1] == "Average" and len({len(v) for v in by_scene.values()}) == 1
         for scene, scene_rows in by_scene.items():
             for k in ("psnr", "ssim", "lpips"):
-                marks = rank_marks([float(r[k]) for r in scene_rows], HIGHER_IS_BETTER[k], DECIMALS[k])
+                col = next(c for c in METRIC_COLUMNS if c.key == k)
+                marks = rank_marks([float(r[k]) for r in scene_rows], col.higher_is_better, col.decimals)
                 if [{1: "best", 2: "second"}.get(m, "") for m in marks] != [r[f"{k}_mark"] for r in scene_rows]:
                     disagree.append((rows[0]["table_label"], scene, k))
     assert labels == {"tab:dehaze": "H", "tab:derain": "R", "tab:desnow": "S", "tab:mix": "H+R+S",
                       "tab:h+r": "H+R", "tab:h+s": "H+S", "tab:r+s": "R+S"}
     # The paper's one slip (README): it marks RainyScape's 0.808 second, above OR+3DGS's 0.814.
     assert disagree == [("tab:r+s", "Tanabata", "ssim")]
+
+
+def test_a_table_layout_is_data():
+    """A hand-built table (two blocks, a text column, an unranked column) renders alike in all three formats."""
+    from benchmark.tables.model import Block, Column, LongFormat, Row, Table
+
+    cols = (Column("note", "note", "note", align="left"), Column("psnr", "PSNR↑", r"PSNR$\uparrow$", 2, True),
+            Column("mb", "MB", "MB", 0, unit=" MB"))
+    fmt = LongFormat("x.csv", "test", ("table", "block", "row", "scene", "note", "psnr", "psnr_mark", "mb"),
+                     group_field="scene")
+
+    def row(label, a, b, note="ok"):
+        return Row(label, {("a", "psnr"): a, ("b", "psnr"): b, ("a", "note"): note, ("b", "mb"): 512.4},
+                   fields={"row": label})
+
+    t = Table("x", "x", "A test of 50% & more", cols, ["a", "b"],
+              [Block([row("r_1", 1.0, 2.0), row("r2", 3.0, None, "a|b"), row("r3", 2.0, 1.0)], "first",
+                     {"block": "1"}),
+               Block([row("s1", 5.0, 5.0)], "second", {"block": "2"})],
+              lead=("Row", "Kind"), notes=["n1"], label="tab:x", csv=fmt, fields={"table": "x"})
+    assert t.marks("a", "psnr", 0) == [None, 1, 2] and t.marks("a", "mb", 0) == [None] * 3
+    assert t.marks("a", "psnr", 1) == [None]  # one row: nothing to rank
+    tex = to_latex(t)
+    assert tex.count("{") == tex.count("}") and r"\begin{tabular}{l c ccc ccc}" in tex
+    rows = _latex_rows(tex)
+    assert len(rows) == 4 and all(r.count("&") == 1 + 1 + 6 - 1 for r in rows)
+    assert r"r\_1 & \multirow{3}{*}{first}" in rows[0] and r"\first{3.00}" in rows[1] and "512 MB" in rows[0]
+    assert r"\cmidrule(lr){1-8}" in tex and r"A test of 50\% \& more" in tex
+    md = to_markdown(t)
+    table = [line for line in md.splitlines() if line.startswith("|")]
+    assert table[0] == "| Row | Kind | a note | a PSNR↑ | a MB | b note | b PSNR↑ | b MB |"
+    assert table[1] == "|:---|:---|:---|---:|---:|:---|---:|---:|"
+    assert "| r2 | first | a\\|b | **3.00** | – | – | – | 512 MB |" in table
+    assert md.rstrip().endswith("n1. Best **bold**, second best _italic_.")
+    lines = list(csv.DictReader(io.StringIO(to_csv([t]))))
+    assert len(lines) == 2 * 4  # (groups) x (rows)
+    assert lines[1] == {"table": "x", "block": "1", "row": "r2", "scene": "a", "note": "a|b", "psnr": "3.0",
+                        "psnr_mark": "best", "mb": ""}
+
+
+def test_reference_data_is_declared_package_data():
+    """Every file of benchmark/data ships with a (non-editable) install: pyproject.toml declares it."""
+    import fnmatch
+    from pathlib import Path
+
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11+
+
+    from benchmark import reference
+    from benchmark.data import DATA_DIR, PAPER_ABLATIONS_DIR, PAPER_DIR, REGRESSION_REFERENCE
+
+    root = Path(__file__).resolve().parents[1]
+    patterns = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
+    declared = patterns["benchmark.data"]
+    files = [p.relative_to(DATA_DIR).as_posix() for p in DATA_DIR.rglob("*")
+             if p.is_file() and p.suffix not in (".py", ".pyc")]
+    assert files and all(any(fnmatch.fnmatch(f, pat) for pat in declared) for f in files), (files, declared)
+    # `nimbus-bench reference check / update --regression` read and rewrite this package file.
+    assert reference.REGRESSION_REFERENCE == REGRESSION_REFERENCE and REGRESSION_REFERENCE.is_file()
+    assert len(list(PAPER_DIR.glob("*.csv"))) == 7
+    assert len(list(PAPER_ABLATIONS_DIR.glob("*.csv"))) == 5

@@ -9,13 +9,15 @@ import re
 
 import pytest
 
-from benchmark.ablation_tables import (
-    ABLATION_REFERENCE_DIR, ABLATIONS, OURS, RUNTIME_COLUMNS, ablation_tables, ablations_csv, paper_ablation_tables,
-    runtime_csv, runtime_text, to_latex, to_markdown,
-)
 from benchmark.cli import TOOL
+from benchmark.data import PAPER_ABLATIONS_DIR as ABLATION_REFERENCE_DIR
 from benchmark.store import ResultsStore, load_results
-from benchmark.tables import DECIMALS, HIGHER_IS_BETTER, METRICS, rank_marks
+from benchmark.tables import ablation, runtime
+from benchmark.tables.ablation import ABLATIONS, OURS
+from benchmark.tables.model import rank_marks
+from benchmark.tables.results import METRIC_COLUMNS, METRICS
+from benchmark.tables.runtime import COLUMNS as RUNTIME_COLUMNS
+from benchmark.tables.writer import to_csv, to_latex, to_markdown
 from nimbus.cli_util import run_cli
 
 # (method, weather, scene, psnr, ssim, lpips).  Components: on H, nimbus-full is best everywhere and
@@ -46,6 +48,21 @@ def records(preset="tiny", device="cpu"):
                     "train_time_s": 60.0 * (2 if method == "3dgs" else 3), "peak_memory_mb": 512.0 + i,
                     "num_params": 250_000, "render_fps": 40.0, "device": device})
     return out
+
+
+HIGHER_IS_BETTER = {c.key: c.higher_is_better for c in METRIC_COLUMNS}
+DECIMALS = {c.key: c.decimals for c in METRIC_COLUMNS}
+
+
+def ablation_tables(df, method_order=()):
+    """Our ablation tables, then the runtime table(s), and the layouts skipped (as ``nimbus-bench tables`` lists)."""
+    ours, skipped = ablation.tables(df, method_order)
+    times, missing = runtime.tables(df, method_order)
+    return ours + times, skipped + missing
+
+
+def paper_ablation_tables():
+    return {**ablation.paper(), **runtime.paper()}
 
 
 def _store(root, recs):
@@ -81,18 +98,19 @@ def test_tables_built_and_skipped(built):
 
 def test_component_values_marks_and_missing(built):
     t = built[0]["ablation_components"]
-    assert [b.weather for b in t.blocks] == ["H", "R", "H+R+S"] and t.groups == ["Average"]
+    assert [b.fields["weather"] for b in t.blocks] == ["H", "R", "H+R+S"] and t.groups == ["Average"]
     hazy = [r.label for r in t.blocks[0].rows]
     assert hazy == ["Gaussian-Driven Extinction", "Uniform Extinction", "w/o CSM", "Ours"]
-    assert t.values[(0, "Ours", "Average", "psnr")] == pytest.approx(22.0)
-    assert t.values[(0, "Uniform Extinction", "Average", "ssim")] == pytest.approx(0.65)
-    assert t.values.get((0, "w/o CSM", "Average", "psnr")) is None  # not run: missing, never zero
-    assert t.marks(0, "Average", "psnr") == [None, 2, None, 1]
-    assert t.marks(0, "Average", "lpips") == [None, 2, None, 1]
-    assert all(t.values.get((1, r.label, "Average", k)) is None for r in t.blocks[1].rows for k in METRICS)
+    assert t.row("Ours", 0).values[("Average", "psnr")] == pytest.approx(22.0)
+    assert t.row("Uniform Extinction", 0).values[("Average", "ssim")] == pytest.approx(0.65)
+    assert t.row("w/o CSM", 0).values.get(("Average", "psnr")) is None  # not run: missing, never zero
+    assert t.marks("Average", "psnr", 0) == [None, 2, None, 1]
+    assert t.marks("Average", "lpips", 0) == [None, 2, None, 1]
+    assert all(r.values.get(("Average", k)) is None for r in t.blocks[1].rows for k in METRICS)
     # w/o GGS ran on garden only: no Average, and the note says why
-    assert t.values[(2, "w/o GGS", "Average", "psnr")] is None and t.values[(2, "w/o GGS", "garden", "psnr")] == 19.0
-    assert t.marks(2, "Average", "psnr") == [None, None]  # one value: nothing to rank
+    no_ggs = t.row("w/o GGS", 2)
+    assert no_ggs.values[("Average", "psnr")] is None and no_ggs.values[("garden", "psnr")] == 19.0
+    assert t.marks("Average", "psnr", 2) == [None, None]  # one value: nothing to rank
     assert any("w/o GGS (nimbus-no-ggs) was run on 1 of the 2 H+R+S scenes" in n for n in t.notes)
     assert any("rows not in the paper's table: w/o CSM, w/o PLM" in n for n in t.notes)
 
@@ -100,8 +118,8 @@ def test_component_values_marks_and_missing(built):
 def test_minit_has_scene_groups(built):
     t = built[0]["ablation_minit"]
     assert t.groups == ["garden", "street"] and [r.label for r in t.blocks[0].rows] == ["1K", "2K", "4K", "10K", "15K"]
-    assert t.marks(0, "street", "psnr") == [None, None, 1, None, None]  # two values: best only
-    assert t.values.get((0, "2K", "garden", "psnr")) is None
+    assert t.marks("street", "psnr", 0) == [None, None, 1, None, None]  # two values: best only
+    assert t.row("2K", 0).values.get(("garden", "psnr")) is None
 
 
 def _latex_parts(tex: str) -> tuple[int, list[str], list[str]]:
@@ -122,7 +140,7 @@ def test_latex_and_markdown_structure(built, key):
         assert tex.count(rf"\begin{{{env}}}") == tex.count(rf"\end{{{env}}}") == 1
     assert tex.index(r"\toprule") < tex.index(r"\midrule") < tex.index(r"\bottomrule")
     ncols, heads, rows = _latex_parts(tex)
-    n_rows = len(t.methods) if key == "runtime" else sum(len(b.rows) for b in t.blocks)
+    n_rows = sum(len(b.rows) for b in t.blocks)
     assert len(rows) == n_rows
     for line in heads + rows:
         spans = [int(s) for s in re.findall(r"\\multicolumn\{(\d+)\}", line)]
@@ -152,23 +170,24 @@ def test_latex_marks_and_missing_cells(built):
 
 def test_runtime_values_and_text(built):
     t = built[0]["runtime"]
-    assert t.methods == ["nimbus-full", "3dgs", "nimbus-no-ggs", "nimbus-ggs-no-depth", "nimbus-minit-1k",
+    assert t.blocks[0].labels == ["nimbus-full", "3dgs", "nimbus-no-ggs", "nimbus-ggs-no-depth", "nimbus-minit-1k",
                          "nimbus-minit-4k"]
-    assert t.values[("3dgs", "Training")] == pytest.approx(2.0) and t.values[("3dgs", "Params.")] == 0.25
-    assert t.values[("nimbus-no-ggs", "FPS")] is None  # one of two scenes
+    assert t.row("3dgs").values[("", "training_min")] == pytest.approx(2.0)
+    assert t.row("3dgs").values[("", "params_M")] == 0.25
+    assert t.row("nimbus-no-ggs").values[("", "fps")] is None  # one of two scenes
     params, memory, training, fps = RUNTIME_COLUMNS
-    assert runtime_text(94.1, params, "-") == "94.1M" and runtime_text(0.25, params, "-") == "0.25M"
-    assert runtime_text(29.0, training, "-") == "29min" and runtime_text(1.5, training, "-") == "1.5min"
-    assert runtime_text(171.0, fps, "-") == "171" and runtime_text(None, memory, "-") == "-"
+    assert params.format(94.1, "-") == "94.1M" and params.format(0.25, "-") == "0.25M"
+    assert training.format(29.0, "-") == "29min" and training.format(1.5, "-") == "1.5min"
+    assert fps.format(171.0, "-") == "171" and memory.format(None, "-") == "-"
     assert "device: cpu" in t.notes[0] and "no values" in " ".join(t.notes)
-    rows = list(csv.DictReader(io.StringIO(runtime_csv([t]))))
+    rows = list(csv.DictReader(io.StringIO(to_csv([t]))))
     assert rows[1]["method"] == "3dgs" and float(rows[1]["training_min"]) == pytest.approx(2.0)
     assert rows[2]["fps"] == ""
 
 
 def test_ablations_csv(built):
     tables = [t for k, t in built[0].items() if k != "runtime"]
-    text = ablations_csv(tables)
+    text = to_csv(tables)
     header = text.splitlines()[0].split(",")
     assert len(header) == len(set(header)) and "lpips_net" in header, header
     rows = list(csv.DictReader(io.StringIO(text)))
@@ -185,8 +204,8 @@ def test_paper_reference_tables_and_their_marks():
     assert set(paper) == {"ablation_components", "ablation_ggs", "ablation_loss", "ablation_minit", "runtime"}
     comp = paper["ablation_components"]
     assert [len(b.rows) for b in comp.blocks] == [3, 2, 2]  # the paper's rows only
-    assert comp.values[(1, "Restored-Derived Residuals", "Average", "psnr")] == 29.65
-    assert paper["runtime"].values[("Ours", "Params.")] == 78.4
+    assert comp.row("Restored-Derived Residuals", 1).values[("Average", "psnr")] == 29.65
+    assert paper["runtime"].row("Ours").values[("", "params_M")] == 78.4
     for spec in ABLATIONS:
         rows = list(csv.DictReader((ABLATION_REFERENCE_DIR / spec.reference).open()))
         assert {r["table_label"] for r in rows} == {spec.paper_label}
@@ -209,7 +228,7 @@ def test_presets_are_not_mixed(tmp_path):
     keys = [t.key for t in tables]
     assert "ablation_components_tiny" in keys and "ablation_components_fast" in keys
     fast = next(t for t in tables if t.key == "ablation_components_fast")
-    assert fast.values[(0, "Ours", "Average", "psnr")] == pytest.approx(22.0) and "preset fast" in fast.caption
+    assert fast.row("Ours", 0).values[("Average", "psnr")] == pytest.approx(22.0) and "preset fast" in fast.title
     assert "ablation_ggs_fast" not in keys  # no GGS-factor row was run with the fast preset
 
 

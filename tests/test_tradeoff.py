@@ -15,7 +15,8 @@ import torch
 
 from benchmark import grid
 from benchmark.cli import TOOL
-from benchmark.grid import Cell, InlineExecutor
+from benchmark.cell import Cell
+from benchmark.grid import InlineExecutor
 from benchmark.store import ResultsStore
 from benchmark.tradeoff import (CSV_COLUMNS, PARETO_COLUMNS, SweepPoint, base_cell, build_sweep, pareto_front,
                                 parse_knobs, sweep_cells, tradeoff_rows)

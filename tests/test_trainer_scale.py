@@ -111,14 +111,26 @@ def test_densification_statistic_does_not_depend_on_the_image_size(garden, tmp_p
 
 @pytest.mark.slow
 def test_scaled_and_shifted_copies_train_to_the_same_psnr(garden, tmp_path):
+    """Copies of a scene in other units and origins train to the test PSNR of the original.
+
+    Scaled copies keep densification (its thresholds are the scale-dependent part; measured equal to the
+    original's PSNR to 1e-3 dB at seeds 0, 1, 2).  The geo-referenced shifts (1e6 to 1e7) run without it:
+    moving the origin by 1e6 perturbs the normalised poses in their last float64 bits, and with densification on
+    a 150-iteration run is chaotic enough to turn that into -0.49 / +0.24 / -0.16 dB at seeds 0 / 1 / 2 (on an
+    AVX2 machine; an AVX-512 one stayed within 0.3 dB), the same spread as a change of seed.  Without it the
+    shifted runs matched to 2e-4 dB, where training in world coordinates loses the means to float32 rounding.
+    """
     cfg = dataclasses.replace(preset("tiny").rescaled(150), sh_degree=0)
     s = garden.with_views(garden.train_views[::2] + garden.test_views)
 
-    def run(label, scene):
-        return GaussianTrainer(scene, cfg, tmp_path / label, seed=0, progress=False).train()["psnr"]
+    def run(label, scene, config=cfg):
+        return GaussianTrainer(scene, config, tmp_path / label, seed=0, progress=False).train()["psnr"]
 
     base = run("base", s)
     for label, scene in [("x100", transformed(s, 100.0)), ("x0.001", transformed(s, 1e-3)),
-                         ("shift1e6", transformed(s, 1.0, (1e6, -2e6, 5e5))),
                          ("x0.01+shift", transformed(s, 0.01, (300.0, 100.0, -50.0)))]:
-        assert run(label, scene) == pytest.approx(base, abs=0.3), label
+        assert run(label, scene) == pytest.approx(base, abs=0.05), label
+    still = dataclasses.replace(cfg, densify_until=0)
+    base = run("base-still", s, still)
+    for label, shift in [("shift1e6", (1e6, -2e6, 5e5)), ("shift1e7", (1e7, -2e7, 5e6))]:
+        assert run(label, transformed(s, 1.0, shift), still) == pytest.approx(base, abs=0.05), label

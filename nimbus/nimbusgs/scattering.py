@@ -11,7 +11,7 @@ uniformly in ``[t_n, t_0]`` (the near bound and the rendered surface), then
 Samples sit at the centres of K equal segments, so a homogeneous field gives
 ``T = exp(-beta L)``.  With one airlight per ray the weights telescope for any field,
 ``sum_i T_i (1 - exp(-tau_i)) = 1 - T``, so :func:`march` only accumulates the optical
-depth (on the CPU in a compiled kernel, :mod:`nimbus.nimbusgs.march_cpp`);
+depth (on the CPU in a compiled kernel, :mod:`nimbus.kernels.march`);
 :func:`march_reference` evaluates the equations term by term.
 
 Conventions: rays follow the camera convention of :mod:`nimbus.data.camera` (OpenCV,
@@ -298,7 +298,7 @@ def march(field: nn.Module, origin: Tensor, dirs: Tensor, t_start: Tensor, t_end
     samples : int
         K.
     backend : str
-        One of :data:`MARCH_BACKENDS`.  The compiled kernel (:mod:`nimbus.nimbusgs.march_cpp`)
+        One of :data:`MARCH_BACKENDS`.  The compiled kernel (:mod:`nimbus.kernels.march`)
         marches an :class:`ExtinctionGrid` on the CPU when the rays and intervals need no gradient.
     """
     if backend not in MARCH_BACKENDS:
@@ -309,9 +309,10 @@ def march(field: nn.Module, origin: Tensor, dirs: Tensor, t_start: Tensor, t_end
         raise NimbusError("march backend 'cpp' needs an extinction grid on the CPU, rays and intervals without "
                           "gradient and a working C++ kernel; use backend 'torch' or 'auto'")
     if compiled:
-        from nimbus.nimbusgs import march_cpp
+        from nimbus.kernels import march as march_kernel
 
-        s = march_cpp.grid_optical_depth(field.features, field.lo, field.hi, origin, dirs, t_start, t_end, samples)
+        s = march_kernel.grid_optical_depth(field.features, field.lo, field.hi, origin, dirs, t_start, t_end,
+                                            samples)
         tau = s * torch.exp(field.log_scale)
     else:
         length = (t_end - t_start).clamp_min(0.0)
@@ -324,9 +325,9 @@ def march(field: nn.Module, origin: Tensor, dirs: Tensor, t_start: Tensor, t_end
 
 
 def _compiled_usable(field: "ExtinctionGrid", *rays: Tensor) -> bool:
-    from nimbus.nimbusgs import march_cpp
+    from nimbus.kernels import march as march_kernel
 
-    return march_cpp.usable(field.features, *rays) and march_cpp.available()
+    return march_kernel.usable(field.features, *rays) and march_kernel.available()
 
 
 def march_reference(field: nn.Module, origin: Tensor, dirs: Tensor, t_start: Tensor, t_end: Tensor,

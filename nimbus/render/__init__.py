@@ -1,4 +1,4 @@
-"""Differentiable Gaussian-splatting rasterizer (CPU-first; torch, C++ or gsplat compositing).
+"""Differentiable Gaussian-splatting rasterizer (CPU-first; torch, C++ or gsplat backends, :mod:`nimbus.render.backends`).
 
 Public entry points: :class:`Gaussians` and its initialisers, :func:`rasterize`.
 """
@@ -10,7 +10,8 @@ from nimbus.render.gaussians import (
     init_from_scene,
     init_random,
 )
-from nimbus.render.rasterize import BACKENDS, RasterConfig, means2d_grad, rasterize
+from nimbus.render.backends import BACKENDS
+from nimbus.render.rasterize import RasterConfig, means2d_grad, rasterize
 
 __all__ = [
     "BACKENDS",

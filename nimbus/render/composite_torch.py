@@ -1,6 +1,6 @@
 """Per-tile front-to-back alpha compositing in vectorised torch, with a hand-written backward.
 
-This is the compositing stage of the rasterizer; ``nimbus.render.composite_cpp.composite``
+This is the compositing stage of the rasterizer; ``nimbus.kernels.raster.composite``
 is a drop-in replacement with the same signature and rules.
 
 Rules (shared with the C++ kernel and :mod:`nimbus.render.reference`)

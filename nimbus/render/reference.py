@@ -103,7 +103,8 @@ def rasterize_reference(
     Returns the same ``(rgb, depth, alpha, meta)``; meta has ``means2d``, ``radii``,
     ``depths`` and ``visible``.
     """
-    from nimbus.render.rasterize import RasterConfig, project_and_shade, resolve_camera
+    from nimbus.render.backends.torch import project_and_shade
+    from nimbus.render.rasterize import RasterConfig, resolve_camera
 
     cfg = config or RasterConfig()
     viewmat, K, width, height = resolve_camera(gaussians, camera, viewmat, K, width, height)

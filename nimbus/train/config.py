@@ -13,6 +13,7 @@ from typing import ClassVar
 
 from nimbus.config_validation import INT_MAX, Limit, at_least, between, fraction, one_of, positive, validate
 from nimbus.errors import NimbusError
+from nimbus.render.backends import BACKENDS
 
 
 @dataclass(frozen=True)
@@ -106,7 +107,7 @@ class TrainConfig:
         "init_opacity": between(0, 1, lo_open=True, hi_open=True), "init_random_points": at_least(0),
         "train_downscale": at_least(1),
         "background": fraction(note="R, G, B"),
-        "backend": one_of("auto", "torch", "cpp", "gsplat"),
+        "backend": one_of(*BACKENDS),
         "tile_size": at_least(1),
         "near_plane": positive(),
         "log_interval": at_least(1), "checkpoint_interval": at_least(1), "test_interval": at_least(0, note="0: off"),

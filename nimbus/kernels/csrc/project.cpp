@@ -12,8 +12,8 @@
 // gradients land on the N Gaussians directly, without gathers and scatters.  Colours
 // and opacities are zero for Gaussians with radius 0 (they are never composited).
 //
-// Registered as torch.ops.nimbus_project.*; built together with composite.cpp by
-// nimbus/render/composite_cpp.py.
+// Registered as torch.ops.nimbus_project.*; built together with composite.cpp into the
+// rasterizer extension by nimbus/kernels/raster.py.
 
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>

@@ -4,7 +4,7 @@ The trunks dominate the cost of scoring (VGG16 on 320 x 240 is ~47 GFLOP per ima
 onnxruntime's CPU convolutions (blocked NCHWc kernels) run the VGG trunk at ~0.25 CPU
 seconds per 320 x 240 image here, about the core's float32 FMA peak, ~1.2x less CPU time
 than torch's oneDNN path (``benchmark/bench_metrics.py``; AlexNet: about equal).  The
-ONNX graph is written here directly from :data:`benchmark.lpips.TRUNKS` and the
+ONNX graph is written here directly from :data:`nimbus.metrics.lpips_network.TRUNKS` and the
 weights, as ONNX protobuf bytes: a chain of ``MaxPool`` / ``Conv`` / ``Relu`` whose
 tapped ``Relu`` outputs are the graph's outputs.  Building it takes a fraction of a
 second, so nothing is cached on disk and no exporter (``torch.onnx``, the ``onnx``
@@ -12,7 +12,7 @@ package) is needed; the tests check the graph with ``onnx.checker`` where ``onnx
 installed.
 
 Only the trunk runs here.  The input normalisation, the per-pixel unit normalisation of
-the tapped features and the distance stay in :class:`benchmark.lpips.LPIPSNetwork`, so
+the tapped features and the distance stay in :class:`nimbus.metrics.lpips_network.LPIPSNetwork`, so
 both back ends share them; LPIPS values agree with the torch path to ~1e-7.
 """
 
@@ -23,7 +23,7 @@ from typing import Mapping
 import numpy as np
 import torch
 
-from benchmark.lpips import TRUNKS
+from nimbus.metrics.lpips_network import TRUNKS
 
 #: ONNX opset and IR version of the written graph (Conv, Relu, MaxPool: unchanged since opset 12).
 OPSET = 17
@@ -86,13 +86,13 @@ def trunk_model_bytes(net: str, state_dict: Mapping[str, torch.Tensor]) -> bytes
     ----------
     net : {"alex", "vgg"}
     state_dict : mapping
-        :class:`benchmark.lpips.LPIPSNetwork` layout (``convs.{i}.weight/bias``; heads ignored).
+        :class:`nimbus.metrics.lpips_network.LPIPSNetwork` layout (``convs.{i}.weight/bias``; heads ignored).
 
     Returns
     -------
     bytes
         A graph with input ``x``: (B, 3, H, W) float32, already ImageNet-normalised as in
-        :meth:`benchmark.lpips.LPIPSNetwork.features`, and one output ``tap{k}`` per tapped
+        :meth:`nimbus.metrics.lpips_network.LPIPSNetwork.features`, and one output ``tap{k}`` per tapped
         layer: the raw (not unit-normalised) ReLU output (B, C_k, H_k, W_k).
     """
     nodes, inits, outputs = [], [], []

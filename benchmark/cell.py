@@ -1,0 +1,440 @@
+"""One benchmark cell: what it is, the data it trains on, and running it (train, score, record).
+
+A benchmark root holds::
+
+    ROOT/scenes/<scene>-<size>/           the clean built-in scene (rendered once)
+    ROOT/data/<scene>-<size>/<SETTING>/   its degraded copies (``nimbus-synth degrade`` layout,
+                                          fixed synthesis seed :data:`SYNTH_SEED`)
+    ROOT/runs/<cell-id>/                  one trainer run directory per cell
+    ROOT/results.jsonl                    one record per finished cell (:mod:`benchmark.store`)
+
+Each cell trains its method on the degraded images and is scored with
+:mod:`benchmark.metrics` against the *clean* test views (``clean/``): the trainer's own
+PSNR compares with the degraded inputs, which is not the benchmark's question.  A cell
+trains into ``runs/<cell-id>.partial`` and is renamed into place before it is scored, so a
+killed run leaves no half-written run passing for a finished one; a rerun removes leftovers.
+
+:func:`run_cell` is the one way a cell runs, whoever asks (:mod:`benchmark.grid` for
+``nimbus-bench run`` and ``tradeoff``).  The stability report trains on inputs of its own
+making, so it uses the steps below it: :func:`train_method` (the only call into a
+trainer), :func:`score_run`, and the questions it asks a trained model
+(:func:`model_parameters`, :func:`medium_composition`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import shutil
+import socket
+import time
+import traceback
+import warnings
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Callable, Iterable, Sequence
+
+from benchmark.store import ResultsStore
+from nimbus.errors import NimbusError
+
+#: Seed of the built-in scenes' rendering and of the weather synthesis: fixed, so every
+#: method and every training seed sees the same degraded images.
+SCENE_SEED = 0
+SYNTH_SEED = 0
+SYNTH_PROTOCOL = "onerestore"
+DEFAULT_PRESET = "tiny"
+DEFAULT_SIZE = "tiny"
+PARTIAL_SUFFIX = ".partial"
+CELL_FORMAT = "nimbus-bench-cell/1"
+#: Parameters per Gaussian besides its SH colour: mean 3 + quaternion 4 + log-scale 3 + opacity 1.
+GEOMETRY_PARAMS = 11
+
+
+# --- cells -------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Cell:
+    """One benchmark cell: a method trained on one degraded scene with one preset and seed.
+
+    Attributes
+    ----------
+    scene : str
+        Built-in scene name (``garden``, ``street``, ``tabletop``).
+    weather : str
+        Weather setting name (``H``, ``R+S``, ...; :mod:`weather_synth.settings`).
+    method : str
+        Registered method name (:mod:`nimbus.train.methods`).
+    preset : str
+        Trainer preset (``tiny``, ``fast``, ``paper``).
+    seed : int
+        Training seed (the data's seeds are fixed).
+    size : str
+        Built-in scene size (``tiny``, ``small``, ``standard``).
+    overrides : tuple of (key, value)
+        ``--set`` config overrides, sorted.
+    """
+
+    scene: str
+    weather: str
+    method: str
+    preset: str = DEFAULT_PRESET
+    seed: int = 0
+    size: str = DEFAULT_SIZE
+    overrides: tuple[tuple[str, str], ...] = ()
+
+    @property
+    def cell_id(self) -> str:
+        """Stable, file-name-safe id, e.g. ``garden-tiny_H+R_3dgs_tiny_s0`` (+ a hash of any overrides)."""
+        cid = f"{self.data_name}_{self.weather}_{self.method}_{self.preset}_s{self.seed}"
+        if self.overrides:
+            cid += "_" + hashlib.sha256(json.dumps(self.overrides).encode()).hexdigest()[:8]
+        return cid
+
+    @property
+    def data_name(self) -> str:
+        return f"{self.scene}-{self.size}"
+
+    def to_dict(self) -> dict:
+        return {**dataclasses.asdict(self), "overrides": dict(self.overrides)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Cell":
+        return cls(d["scene"], d["weather"], d["method"], d["preset"], int(d["seed"]), d["size"],
+                   tuple(sorted(d.get("overrides", {}).items())))
+
+
+def make_config(method, preset: str, overrides: dict[str, str]):
+    """The method's preset with ``--set`` overrides applied (:mod:`nimbus.config_set`)."""
+    from nimbus.config_set import apply_overrides
+
+    return apply_overrides(method.preset(preset), overrides)
+
+
+@dataclass(frozen=True)
+class CellOptions:
+    """How cells are scored and run (the same for every cell of a grid).
+
+    Attributes
+    ----------
+    ssim_protocol : str
+        :data:`nimbus.metrics.SSIM_PROTOCOLS` name (``3dgs``: the paper's).
+    lpips_net : str or None
+        ``vgg`` (the paper's), ``alex``, or None to skip LPIPS.
+    threads : int or None
+        torch CPU threads in the worker (None: leave torch's default).
+    device : str or None
+        torch device for training (None: CUDA when available, else CPU).
+    """
+
+    ssim_protocol: str = "3dgs"
+    lpips_net: str | None = "vgg"
+    threads: int | None = None
+    device: str | None = None
+
+
+# --- data ----------------------------------------------------------------------------------
+def scene_dir(root: Path, cell: Cell) -> Path:
+    return Path(root) / "scenes" / cell.data_name
+
+
+def data_dir(root: Path, cell: Cell) -> Path:
+    """The degraded setting folder a cell trains on."""
+    return Path(root) / "data" / cell.data_name / cell.weather
+
+
+def run_dir(root: Path, cell: Cell) -> Path:
+    return Path(root) / "runs" / cell.cell_id
+
+
+def write_clean_scene(scene: str, size: str, out: Path, progress: bool = False) -> bool:
+    """Render a built-in scene into ``out`` (seed :data:`SCENE_SEED`) unless it is there; whether it rendered."""
+    from nimbus.data.builtin import write_builtin
+
+    if (Path(out) / "manifest.json").is_file():
+        return False
+    write_builtin(scene, out, size, seed=SCENE_SEED, overwrite=True, progress=progress)
+    return True
+
+
+def synthesize(clean: Path, out: Path, settings: Sequence[str], config=None, *, progress: bool, source: str) -> None:
+    """Degrade the scene in ``clean`` into one ``nimbus-synth degrade`` setting folder per setting under ``out``.
+
+    ``config`` is a :mod:`weather_synth.config` synthesis config (default: the benchmark's,
+    :data:`SYNTH_PROTOCOL` with seed :data:`SYNTH_SEED`).
+
+    Raises
+    ------
+    NimbusError
+        A synthesis parameter is out of range (the synthesizer's own message).
+    """
+    from nimbus.data.io import load_scene
+    from weather_synth.config import protocol_config
+    from weather_synth.dataset import degrade_scene
+    from weather_synth.settings import parse_setting
+
+    degrade_scene(load_scene(clean), out, [parse_setting(w) for w in settings],
+                  protocol_config(SYNTH_PROTOCOL, SYNTH_SEED) if config is None else config, overwrite=True,
+                  progress=progress, source=source)
+
+
+def prepare_data(root: str | os.PathLike, cells: Iterable[Cell], progress: bool = True,
+                 log: Callable[[str], None] | None = None) -> None:
+    """Render the clean scenes and synthesise the degraded settings the cells need and the root lacks.
+
+    Both steps write atomically (a folder appears only when complete) with fixed seeds, so a
+    run interrupted here resumes by simply doing what is still missing.  Each scene's data is
+    prepared under its data lock: a second run waits for the first, then finds the data
+    there, instead of replacing folders the first one's cells are reading.
+    """
+    from weather_synth.dataset import MANIFEST
+
+    root = Path(root)
+    need: dict[Cell, list[str]] = {}
+    for c in cells:
+        key = Cell(c.scene, "", "", size=c.size)
+        if c.weather not in need.setdefault(key, []):
+            need[key].append(c.weather)
+    store = ResultsStore(root)
+    for key, weathers in need.items():
+        lock = store.data_lock(key.data_name)
+        if not lock.acquire():
+            holder = lock.holder()
+            if log:
+                log(f"waiting for another run ({holder.describe() if holder else 'another process'}) preparing "
+                    f"the data of {key.data_name}")
+            lock.acquire(wait=True)
+        try:
+            clean = scene_dir(root, key)
+            if log and not (clean / "manifest.json").is_file():
+                log(f"rendering built-in scene {key.scene} ({key.size}) -> {clean}")
+            write_clean_scene(key.scene, key.size, clean, progress=progress)
+            out = root / "data" / key.data_name
+            missing = [w for w in weathers if not (out / w / MANIFEST).is_file()]
+            if missing:
+                if log:
+                    log(f"synthesising {', '.join(missing)} for {key.data_name} -> {out}")
+                synthesize(clean, out, missing, progress=progress, source=f"builtin:{key.scene}:{key.size}")
+        finally:
+            lock.release()
+
+
+def clear_run_dirs(root: Path, cell: Cell) -> tuple[Path, Path]:
+    """Remove what an interrupted or failed earlier attempt left of a cell; its final and partial run folders.
+
+    Only the holder of the cell's lock may call this (:func:`benchmark.grid.run_grid` holds it for
+    every cell it runs): another run's cell in flight is never removed.
+    """
+    final = run_dir(root, cell)
+    partial = final.with_name(cell.cell_id + PARTIAL_SUFFIX)
+    for leftover in (partial, final):
+        if leftover.exists():
+            shutil.rmtree(leftover)
+    return final, partial
+
+
+# --- training and scoring ------------------------------------------------------------------------
+def train_method(method_name: str, scene, config, out_dir: Path, *, seed: int, scene_path: str, progress: bool,
+                 device: str | None = None,
+                 model_ready: Callable[[object], None] | None = None) -> tuple[dict, object]:
+    """Train a registered method on a scene into the run folder ``out_dir``.
+
+    The benchmark's only call into a trainer: every cell, sweep point and stability run goes
+    through here.
+
+    Parameters
+    ----------
+    method_name : str
+        Registered method (:func:`nimbus.train.methods.get_method`).
+    scene : nimbus.data.Scene
+    config
+        The method's config (:func:`make_config`).
+    out_dir : path
+        Run folder the trainer writes (renders, log, ``results.json``).
+    seed : int
+        Training seed.
+    scene_path : str
+        Where the scene was read from, as the run folder records it.
+    progress : bool
+        Progress bar on stderr.
+    device : str, optional
+        torch device (None: CUDA when available, else CPU).
+    model_ready : callable(model), optional
+        Called with the model once it is built, before it trains: a caller that inspects
+        the model after a failed training gets it this way.
+
+    Returns
+    -------
+    (dict, object)
+        The trainer's results (``results.json``) and the trained model.
+    """
+    import torch
+
+    from nimbus.train.methods import get_method
+
+    trainer = get_method(method_name).trainer()(scene, config, out_dir, seed=seed, scene_path=scene_path,
+                                                progress=progress,
+                                                device=torch.device(device) if device else None)
+    if model_ready is not None:
+        model_ready(trainer)
+    return trainer.train(), trainer
+
+
+def model_parameters(model) -> list:
+    """Every tensor the model optimises (Gaussians and, for NimbusGS, its medium)."""
+    return [p for g in model.all_param_groups() for p in g["params"]]
+
+
+def medium_composition(method_name: str, model) -> dict:
+    """The medium and residual composition (name -> tensor) of the model's first training view.
+
+    Only methods that model a medium (NimbusGS and its variants) have one; for any other
+    method this is empty.
+    """
+    from nimbus.nimbusgs.trainer import NimbusTrainer
+    from nimbus.train.methods import get_method
+
+    if not issubclass(get_method(method_name).trainer(), NimbusTrainer):
+        return {}
+    return model.compose(0, model.render(model.train_views[0]))
+
+
+def score_run(run: Path, data: Path, results: dict, *, ssim_protocol: str, lpips_net, device: str | None) -> dict:
+    """Score a trained run's renders of its evaluation split against the ground truth of ``data``.
+
+    ``data`` is a setting folder (``clean/`` holds the ground truth); ``lpips_net`` is a network
+    name, a loaded :class:`nimbus.metrics.LPIPS` or None.  A missing LPIPS is left to the
+    score's notes rather than warned about.  Returns :func:`benchmark.score.score_renders`'s dict.
+    """
+    from benchmark.score import score_renders
+
+    split = results.get("eval_split", "test")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        return score_renders(Path(run) / "renders" / split, data, split=split, ssim_protocol=ssim_protocol,
+                             lpips_net=lpips_net, device=device)
+
+
+# --- one cell ----------------------------------------------------------------------------------
+def utc_now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def config_hash(config) -> str:
+    """sha256 of the config as canonical JSON (sorted keys)."""
+    blob = json.dumps(dataclasses.asdict(config), sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()
+
+
+def base_record(cell: Cell) -> dict:
+    """The fields every record has, whatever happened to the cell."""
+    from benchmark.score import versions
+
+    return {"format": CELL_FORMAT, "cell_id": cell.cell_id, **cell.to_dict(), "versions": versions(),
+            "host": socket.gethostname(), "started_at": utc_now()}
+
+
+def error_record(cell: Cell, message: str, started_at: str | None = None) -> dict:
+    """A record for a cell that ended in an error (rerun retries it)."""
+    rec = base_record(cell)
+    if started_at:
+        rec["started_at"] = started_at
+    rec.update(status="error", error=message, finished_at=utc_now())
+    return rec
+
+
+def run_cell(cell: dict | Cell, root: str, options: CellOptions | None = None) -> dict:
+    """Train, render and score one cell; never raises for a failure of the cell itself.
+
+    Runs in a worker (process or Dask task): it reads the prepared data under ``root`` and
+    writes ``root/runs/<cell-id>/``, and returns the record for the parent to store.
+
+    Returns
+    -------
+    dict
+        JSON-ready record: the cell's fields; ``status`` ``"ok"`` or ``"error"`` (with
+        ``error``); ``psnr`` (dB) / ``ssim`` / ``lpips`` means against the clean test views
+        and ``per_view`` values; ``ssim_protocol``, ``lpips_net``, ``notes``;
+        ``psnr_vs_input`` / ``ssim_vs_input`` (the trainer's, against the degraded views);
+        ``train_time_s``, ``peak_memory_mb`` (of the worker process), ``num_gaussians``,
+        ``num_params`` (+ ``num_params_source``), ``render_fps``, ``iterations``;
+        ``config``, ``config_hash``; ``versions``; ``input_sha256`` (the degraded dataset's
+        manifest), ``output_sha256`` (render name -> sha256); ``run_dir`` (relative to
+        root); ``started_at`` / ``finished_at`` (UTC ISO 8601) and ``wall_time_s``.
+    """
+    cell = Cell.from_dict(cell) if isinstance(cell, dict) else cell
+    options = options or CellOptions()
+    rec = base_record(cell)
+    t0 = time.perf_counter()
+    try:
+        rec.update(_run_cell(cell, Path(root), options))
+        rec["status"] = "ok"
+    except NimbusError as e:
+        rec.update(status="error", error=str(e))
+    except Exception as e:  # recorded, not raised: one broken cell must not stop a grid
+        tb = traceback.format_exc(limit=-3)
+        rec.update(status="error", error=f"{e.__class__.__name__}: {e}", traceback=tb)
+    rec["finished_at"] = utc_now()
+    rec["wall_time_s"] = round(time.perf_counter() - t0, 3)
+    from nimbus.utils.jsonable import jsonable
+
+    return jsonable(rec)
+
+
+def _run_cell(cell: Cell, root: Path, options: CellOptions) -> dict:
+    import torch
+
+    from nimbus.data.io import load_scene
+    from nimbus.train.methods import get_method
+    from nimbus.utils.fs import sha256_file
+    from weather_synth.dataset import MANIFEST
+
+    if options.threads:
+        torch.set_num_threads(int(options.threads))
+    config = make_config(get_method(cell.method), cell.preset, dict(cell.overrides))
+    data = data_dir(root, cell)
+    if not (data / MANIFEST).is_file():
+        raise NimbusError(f"{data} is missing; the grid runner prepares it before training (is ROOT shared "
+                          "with the workers?)")
+    final, partial = clear_run_dirs(root, cell)
+    scene = load_scene(data)
+    results, model = train_method(cell.method, scene, config, partial, seed=cell.seed,
+                                  scene_path=str(data.resolve()), progress=False, device=options.device)
+    num_params, source = _param_count(model, results, config)
+    del model  # scoring needs none of it: free its memory first
+    os.replace(partial, final)
+    score = score_run(final, data, results, ssim_protocol=options.ssim_protocol, lpips_net=options.lpips_net,
+                      device=options.device)
+    per_view = [{k: v[k] for k in ("name", "psnr", "ssim", "lpips")} for v in score["per_view"]]
+    out = {
+        "psnr": score["mean"]["psnr"], "ssim": score["mean"]["ssim"], "lpips": score["mean"]["lpips"],
+        "per_view": per_view, "ssim_protocol": options.ssim_protocol, "lpips_net": options.lpips_net,
+        "protocol": score["protocol"], "notes": score["notes"], "setup_command": score.get("setup_command"),
+        "ground_truth": score["ground_truth"],
+        "psnr_vs_input": results.get("psnr"), "ssim_vs_input": results.get("ssim"),
+        "train_time_s": results.get("train_time_s"), "peak_memory_mb": results.get("peak_memory_mb"),
+        "num_gaussians": results.get("num_gaussians"), "num_params": num_params, "num_params_source": source,
+        "render_fps": results.get("render_fps"), "iterations": results.get("iterations"),
+        "device": results.get("device"), "config": dataclasses.asdict(config), "config_hash": config_hash(config),
+        "config_type": type(config).__name__,
+        "input_sha256": sha256_file(data / MANIFEST),
+        "output_sha256": {v["name"]: v["pred_sha256"] for v in score["per_view"]},
+        "run_dir": str(final.relative_to(root)),
+    }
+    if "components" in results:
+        out["components"] = results["components"]
+    return out
+
+
+def _param_count(model, results: dict, config) -> tuple[int | None, str]:
+    """Optimised parameter count: the trainer's tensors when it exposes them, else Gaussians x per-Gaussian."""
+    if isinstance(results.get("num_params"), int):
+        return results["num_params"], "trainer"
+    try:
+        n = sum(int(p.numel()) for p in model_parameters(model))
+        return n, "optimiser parameter groups"
+    except Exception:
+        g = results.get("num_gaussians")
+        per = GEOMETRY_PARAMS + 3 * (getattr(config, "sh_degree", 3) + 1) ** 2
+        return (None if g is None else int(g) * per), f"num_gaussians x {per}"

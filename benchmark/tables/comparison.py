@@ -1,0 +1,98 @@
+"""The paper's per-weather comparison tables, ours from the results store and the paper's own numbers.
+
+Layout (``nimbusgs.tex``, tables ``tab:dehaze`` / ``tab:derain`` / ``tab:desnow`` / ``tab:mix`` and the
+supplementary ``tab:h+r`` / ``tab:h+s`` / ``tab:r+s``): one table per weather setting, methods as
+rows, scenes as column groups plus an ``Average`` group, each group PSNR↑ / SSIM↑ / LPIPS↓.
+Values are means over the seeds of a cell; ``Average`` is the mean over scenes and is left
+empty for a method missing a scene.  Best and second best are marked per column
+(:func:`benchmark.tables.model.rank_marks`).  Every table states its SSIM protocol and LPIPS network.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Sequence
+
+from benchmark.data import PAPER_DIR, read_csv
+from benchmark.tables.model import AVERAGE, Block, LongFormat, Row, Table
+from benchmark.tables.results import METRIC_COLUMNS, METRICS, average, finished, ordered, protocols, scene_means
+
+if TYPE_CHECKING:  # importlib.resources.abc is Python 3.11+
+    from importlib.resources.abc import Traversable
+
+CSV = LongFormat("comparisons.csv", "all method comparisons, long format",
+                 ("weather", "method", "scene", *METRICS, *(f"{k}_mark" for k in METRICS), "seeds", "ssim_protocol",
+                  "lpips_net"))
+CAPTION_LEAD = "Quantitative comparison: "
+
+
+def weather_caption(weather: str) -> str:
+    """``haze (H)``: a weather setting's description and name."""
+    from weather_synth.settings import parse_setting
+
+    return f"{parse_setting(weather).description} ({weather})"
+
+
+def _table(weather: str, key: str, label: str, scenes: list[str], rows: list[Row], **kw) -> Table:
+    return Table(key, weather, columns=METRIC_COLUMNS, groups=[*scenes, AVERAGE], blocks=[Block(rows)],
+                 label=f"tab:nimbus-bench-{label}{weather.replace('+', '-')}", caption_lead=CAPTION_LEAD, wide=True,
+                 **kw)
+
+
+def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]]:
+    """One table per weather setting of the store's finished cells (no layout is ever skipped).
+
+    Methods in ``method_order`` are listed first, in that order; the others follow in store order.
+    """
+    from weather_synth.settings import ALL_SETTING_NAMES
+
+    ok = finished(df)
+    ssim_protocol, lp = protocols(ok)
+    out = []
+    for weather in ordered(ok["weather"], ALL_SETTING_NAMES):
+        sub = ok[ok["weather"] == weather]
+        scenes = ordered(sub["scene_label"])
+        cells = scene_means(sub, "method_label")
+        rows = []
+        for m in ordered(sub["method_label"], method_order):
+            row = Row(m, fields={"method": m})
+            for s in scenes:
+                if (m, s) in cells:
+                    means, n = cells[(m, s)]
+                    row.values.update({(s, k): means[k] for k in METRICS})
+                    row.group_fields[s] = {"seeds": n}
+            for k in METRICS:
+                row.values[(AVERAGE, k)] = average([row.values.get((s, k)) for s in scenes])
+            rows.append(row)
+        caption = weather_caption(weather)
+        out.append(_table(weather, f"weather_{weather}", "", scenes, rows, title=caption,
+                          notes=[f"SSIM protocol: {ssim_protocol}; LPIPS: {lp}; mean over seeds, Average = mean "
+                                 "over scenes"],
+                          what=f"ours: method comparison, {caption}", csv=CSV,
+                          fields={"weather": weather, "ssim_protocol": ssim_protocol, "lpips_net": lp}))
+    return out, []
+
+
+def paper(folder: Traversable = PAPER_DIR) -> dict[str, Table]:
+    """The paper's per-weather tables by weather setting (package data; empty when ``folder`` is absent).
+
+    These are the paper's numbers on the paper's (real) scenes, labelled as such; they
+    share the layout of ours, not the data.
+    """
+    out: dict[str, Table] = {}
+    if not folder.is_dir():
+        return out
+    for f in sorted((f for f in folder.iterdir() if f.name.endswith(".csv")), key=lambda f: f.name):
+        records = read_csv(f)
+        if not records:
+            continue
+        label, weather = records[0]["table_label"], records[0]["weather"]
+        rows = {m: Row(m) for m in dict.fromkeys(r["method"] for r in records)}
+        for r in records:
+            rows[r["method"]].values.update({(r["scene"], k): float(r[k]) for k in METRICS})
+        scenes = [s for s in dict.fromkeys(r["scene"] for r in records) if s != AVERAGE]
+        out[weather] = _table(
+            weather, f"paper_{weather}", "paper-", scenes, list(rows.values()),
+            title=f"the paper's reported numbers on the paper's data ({label}, {weather_caption(weather)})",
+            notes=[f"Transcribed from nimbusgs.tex {label}; NOT results of this benchmark (other scenes); "
+                   "SSIM as 3DGS evaluates it, LPIPS VGG"])
+    return out

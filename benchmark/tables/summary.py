@@ -1,0 +1,42 @@
+"""The plain-text summary ``nimbus-bench run`` prints at the end: one line per weather setting x method."""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+from benchmark.tables.results import ordered, protocols
+from nimbus.errors import NimbusError
+
+
+def summary_table(df, method_order: Sequence[str] = ()) -> str:
+    """Plain-text table: mean per weather setting x method over scenes and seeds, with train time.
+
+    Error cells are counted, not averaged.
+    """
+    from weather_synth.settings import ALL_SETTING_NAMES
+
+    if df is None or len(df) == 0:
+        return "(no results)"
+    lines = [f"{'weather':<7} {'method':<16} {'cells':>5} {'PSNR':>7} {'SSIM':>6} {'LPIPS':>6} {'train s':>8} "
+             f"{'errors':>6}"]
+    for w in ordered(df["weather"], ALL_SETTING_NAMES):
+        sub = df[df["weather"] == w]
+        for m in ordered(sub["method"], method_order):
+            g = sub[sub["method"] == m]
+            ok = g[g["status"] == "ok"]
+
+            def mean(col: str, spec: str) -> str:
+                v = ok[col].astype(float)
+                return "n/a" if len(v) == 0 or v.isna().any() else format(v.mean(), spec)
+
+            lines.append(f"{w:<7} {m:<16} {len(g):>5} {mean('psnr', '7.2f'):>7} {mean('ssim', '6.3f'):>6} "
+                         f"{mean('lpips', '6.3f'):>6} {mean('train_time_s', '8.1f'):>8} {len(g) - len(ok):>6}")
+    ok = df[df["status"] == "ok"]
+    if len(ok):
+        try:
+            ssim_protocol, lp = protocols(ok.copy())
+            lines.append(f"PSNR/SSIM/LPIPS against the clean test views; SSIM protocol: {ssim_protocol}; "
+                         f"LPIPS: {lp}")
+        except NimbusError as e:
+            lines.append(f"note: {e}")
+    return "\n".join(lines)

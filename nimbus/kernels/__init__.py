@@ -1,0 +1,13 @@
+"""Compiled CPU kernels: C++ sources, the one loader that builds them, and their Python bindings.
+
+- ``csrc/``: the sources; ``common.h`` holds what they share (inline and per-ISA clone
+  macros, vector types, the float32 exp polynomial).
+- :mod:`~nimbus.kernels.extension`: builds, caches and loads a library once per process
+  (build folders, ``NIMBUS_EXT_DIR``, ``NIMBUS_DISABLE_CPP``, stale build locks).
+- :mod:`~nimbus.kernels.raster`: the rasterizer's library (``composite.cpp`` +
+  ``project.cpp``), used by the "cpp" backend; its instruction-set clones (``NIMBUS_CPU_ISA``).
+- :mod:`~nimbus.kernels.march`: NimbusGS's ray march through its extinction grid (``march.cpp``).
+
+Each library builds on first use and is independent of the others: one failing to build
+leaves the others usable, and each falls back to its torch path.
+"""

@@ -1,0 +1,198 @@
+"""Building and loading a compiled kernel library, written once for every extension of :mod:`nimbus.kernels`.
+
+An :class:`Extension` is built from C++ sources in ``nimbus/kernels/csrc`` with
+:func:`torch.utils.cpp_extension.load` on first use and cached: in
+``$NIMBUS_EXT_DIR/<name>_<tree>`` when that variable is set, else in torch's extension
+directory (``$TORCH_EXTENSIONS_DIR`` or ``~/.cache/torch_extensions``), ``<name>`` the
+extension's name with the torch version and ``<tree>`` a hash of this source folder, so
+that two checkouts never share (and rebuild over) one build, and two extensions never
+share one folder.  A build lock left by a killed build is removed once its folder has
+been idle for 3 minutes.  The first build takes about 10-15 s (g++ and ninja); later
+processes only load the cached library, and an edited source (or ``common.h``) is rebuilt.
+
+:meth:`Extension.available` builds/loads the library once per process and returns False,
+after ONE warning line, when that is impossible (no compiler, failed build); the caller
+then uses its torch path.  ``NIMBUS_DISABLE_CPP=1`` makes it return False without trying
+and without warning, for every extension.
+
+All extensions share the compiler flags below: portable (no ``-march=native``: the cached
+library may be shared between machines; sources add their own per-ISA clones, see
+``csrc/common.h``), no ``-ffast-math`` and no FMA contraction, so the kernels' arithmetic
+runs as written.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import sys
+import threading
+import time
+import warnings
+from pathlib import Path
+
+import torch
+
+__all__ = ["Extension", "CSRC"]
+
+#: The C++ sources of all extensions (and their shared header, ``common.h``).
+CSRC = Path(__file__).resolve().parent / "csrc"
+
+# -fno-trapping-math lets masked selects be vectorised and changes no result.
+# -fopenmp: at::parallel_for runs on torch's OpenMP pool.
+_CFLAGS = ("-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math", "-Wno-psabi")
+_LDFLAGS = ("-fopenmp",)
+# torch's build lock is a plain file that a killed build leaves behind, after which every
+# later load would wait forever; a build takes well under a minute, so an older lock is stale.
+_STALE_LOCK_S = 600.0
+# A build in progress writes its object files; a lock with nothing in the folder touched for
+# this long is stale even if the lock itself is younger than _STALE_LOCK_S.
+_IDLE_BUILD_S = 180.0
+_LOCK_POLL_S = 0.5
+# Each source tree gets its own build folders: two checkouts (a CI clone, a second worktree)
+# sharing one would rebuild over each other on every load, and kill each other's builds.
+_TREE_TAG = hashlib.sha1(str(CSRC).encode()).hexdigest()[:8]
+# The torch version is part of every name: a cached build is only valid for the torch it was built against.
+_TORCH_TAG = "_t" + "".join(ch if ch.isalnum() else "_" for ch in torch.__version__)
+
+
+def _clear_stale_lock(build_dir: str, idle_s: float = _IDLE_BUILD_S) -> bool:
+    """Remove the build lock when it is older than ``_STALE_LOCK_S`` or nothing in ``build_dir`` has changed
+    for ``idle_s`` (its build was killed); True when this call removed it."""
+    lock = os.path.join(build_dir, "lock")
+    try:
+        now = time.time()
+        if now - os.path.getmtime(lock) > _STALE_LOCK_S or now - _last_activity(build_dir) > idle_s:
+            os.remove(lock)
+            return True
+    except OSError:  # no lock, or another process removed it first
+        pass
+    return False
+
+
+def _last_activity(build_dir: str) -> float:
+    """Newest modification time of anything in ``build_dir`` (0 when it cannot be read)."""
+    try:
+        with os.scandir(build_dir) as it:
+            return max((e.stat().st_mtime for e in it), default=0.0)
+    except OSError:
+        return 0.0
+
+
+def _wait_for_build(build_dir: str, idle_s: float = _IDLE_BUILD_S, poll_s: float = _LOCK_POLL_S) -> None:
+    """Wait while another process holds the build lock; remove it once the folder has been idle for
+    ``idle_s`` (its build was killed: torch would otherwise wait for it forever)."""
+    lock = os.path.join(build_dir, "lock")
+    while os.path.exists(lock):
+        if _clear_stale_lock(build_dir, idle_s):
+            print(f"nimbus: removed a stale compiler lock left by an interrupted build in {build_dir}",
+                  file=sys.stderr)
+            return
+        time.sleep(poll_s)
+
+
+def disabled() -> bool:
+    """Whether ``NIMBUS_DISABLE_CPP`` turns every compiled kernel off (any value but empty or ``0``)."""
+    return os.environ.get("NIMBUS_DISABLE_CPP", "") not in ("", "0")
+
+
+class Extension:
+    """One compiled library: its sources, its build folder, and whether it loaded in this process.
+
+    Parameters
+    ----------
+    name : str
+        Library name (``torch.ops`` namespaces are set by the sources' ``TORCH_LIBRARY``);
+        the torch version is appended.
+    sources : tuple of str
+        File names in :data:`CSRC`.
+    kernel : str
+        What the library is, for the warning (``"compositing kernel"``).
+    fallback : str
+        What is used instead when it is unavailable, for the warning (``"the slower torch compositor"``).
+    """
+
+    def __init__(self, name: str, sources: tuple[str, ...], kernel: str, fallback: str) -> None:
+        self.name = name + _TORCH_TAG
+        self.sources = tuple(CSRC / s for s in sources)
+        self.kernel = kernel
+        self.fallback = fallback
+        self.state: dict = {"tried": False, "ok": False, "error": None, "warned": False}
+        self._lock = threading.Lock()
+
+    def build_dir(self) -> str | None:
+        """This library's build folder (None: let torch choose, when its private helper is missing)."""
+        if os.environ.get("NIMBUS_EXT_DIR"):
+            return os.path.join(os.environ["NIMBUS_EXT_DIR"], f"{self.name}_{_TREE_TAG}")
+        from torch.utils import cpp_extension
+
+        try:  # torch's default location (a private helper: tolerate its absence)
+            return cpp_extension._get_build_directory(self.name, verbose=False) + f"_{_TREE_TAG}"
+        except (AttributeError, TypeError):
+            return None
+
+    def build(self) -> None:
+        """Build (or load the cached build of) the library into this process; raises on failure."""
+        from torch.utils import cpp_extension
+
+        build_dir = self.build_dir()
+        if build_dir is not None:
+            os.makedirs(build_dir, exist_ok=True)
+            _wait_for_build(build_dir)
+        cpp_extension.load(
+            name=self.name,
+            sources=[str(p) for p in self.sources],
+            extra_cflags=list(_CFLAGS),
+            extra_ldflags=list(_LDFLAGS),
+            build_directory=build_dir,
+            is_python_module=False,
+            verbose=False,
+        )
+
+    def available(self, warn: bool = True) -> bool:
+        """Whether the library can be used; builds or loads it on the first call.
+
+        Parameters
+        ----------
+        warn : bool
+            On failure, emit one :class:`RuntimeWarning` per process saying why and what
+            is used instead.
+
+        Returns
+        -------
+        bool
+            False when ``NIMBUS_DISABLE_CPP=1`` or when the build/load failed (reason in
+            :meth:`load_error`).
+        """
+        if disabled():
+            return False
+        with self._lock:
+            state = self.state
+            if not state["tried"]:
+                state["tried"] = True
+                try:
+                    self.build()
+                    state["ok"] = True
+                except Exception as exc:  # noqa: BLE001 - any build/load failure means "fall back"
+                    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+                    # A compiler's "error:" line says more than ninja's closing "build stopped".
+                    errors = [ln for ln in lines if "error:" in ln]
+                    line = (errors or lines[-1:] or [repr(exc)])[0]
+                    state["error"] = f"{type(exc).__name__}: {line[:300]}"
+            if not state["ok"] and warn and not state["warned"]:
+                state["warned"] = True
+                warnings.warn(f"nimbus: compiled {self.kernel} unavailable ({state['error']}); "
+                              f"using {self.fallback}", RuntimeWarning,
+                              stacklevel=3)  # the caller of the kernel module's available()
+            return state["ok"]
+
+    def load_error(self) -> str | None:
+        """Why the library could not be built or loaded (one line), or None."""
+        return self.state["error"]
+
+    def require(self, who: str) -> None:
+        """Raise RuntimeError naming ``who`` unless the library is loaded (builds it if need be)."""
+        if not self.state["ok"] and not self.available(warn=False):
+            reason = self.load_error() or "disabled by NIMBUS_DISABLE_CPP"
+            raise RuntimeError(f"{who}: the compiled kernel is unavailable ({reason}); "
+                               "check available() first and use the torch path")
