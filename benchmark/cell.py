@@ -106,15 +106,10 @@ class Cell:
 
 
 def make_config(method, preset: str, overrides: dict[str, str]):
-    """The method's preset with ``--set`` overrides applied."""
-    from nimbus.train.config import apply_overrides
+    """The method's preset with ``--set`` overrides applied (:mod:`nimbus.config_set`)."""
+    from nimbus.config_set import apply_overrides
 
-    config = method.preset(preset)
-    if not overrides:
-        return config
-    if hasattr(config, "with_overrides"):
-        return config.with_overrides(overrides)
-    return apply_overrides(config, overrides)
+    return apply_overrides(method.preset(preset), overrides)
 
 
 @dataclass(frozen=True)
@@ -379,7 +374,7 @@ def run_cell(cell: dict | Cell, root: str, options: CellOptions | None = None) -
         rec.update(status="error", error=f"{e.__class__.__name__}: {e}", traceback=tb)
     rec["finished_at"] = utc_now()
     rec["wall_time_s"] = round(time.perf_counter() - t0, 3)
-    from benchmark.score import jsonable
+    from nimbus.utils.jsonable import jsonable
 
     return jsonable(rec)
 

@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     from benchmark.store import load_results
     from benchmark.tables.summary import summary_table
     from nimbus.data.builtin import list_scenes
-    from nimbus.train.config import parse_set_args
+    from nimbus.config_set import parse_set_args
     from weather_synth.settings import parse_weather
 
     scenes = [s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else list_scenes()

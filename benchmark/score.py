@@ -21,23 +21,23 @@ over its valid pixels only (:data:`nimbus.metrics.MASK_PROTOCOL`); the results s
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 import warnings
 from pathlib import Path
-from typing import Any, Callable
+from typing import Callable
 
 import numpy as np
 
 from benchmark.metrics import Scorer, summarize
 from nimbus.data import load_scene
 from nimbus.data.images import read_image
-from nimbus.data.io import format_names, image_size, list_images
+from nimbus.data.scene_files import format_names, image_size, list_images
 from nimbus.errors import NimbusError
 from nimbus.metrics import LPIPS, LPIPS_NETS, SSIM_PROTOCOLS
 from nimbus.train.views import view_mask
 from nimbus.utils.fs import atomic_write_json, check_output_dir, refuse_overlap, sha256_file
+from nimbus.utils.jsonable import jsonable
 
 FORMAT = "nimbus-bench-score/1"
 SPLITS = ("test", "train", "all")
@@ -225,19 +225,6 @@ def versions() -> dict[str, str]:
     from nimbus.versions import software_versions
 
     return software_versions()
-
-
-def jsonable(obj: Any) -> Any:
-    """Replace non-finite floats by None (strict JSON has no inf / NaN) and numpy scalars by Python ones."""
-    if isinstance(obj, dict):
-        return {k: jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(obj) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    return obj
 
 
 def format_table(result: dict) -> str:

@@ -325,12 +325,13 @@ def synthesize(case: StabilityCase, clean: Path, out: Path) -> Path:
         A synthesis parameter is out of range (the synthesizer's own message).
     """
     from benchmark.cell import synthesize as degrade
-    from weather_synth.config import apply_overrides, protocol_config
+    from nimbus.config_set import apply_overrides, parse_set_args
+    from weather_synth.config import protocol_config
     from weather_synth.settings import parse_setting
 
     if case.weather is None:
         return clean
-    config = apply_overrides(protocol_config(SYNTH_PROTOCOL, SYNTH_SEED), case.synth)
+    config = apply_overrides(protocol_config(SYNTH_PROTOCOL, SYNTH_SEED), parse_set_args(case.synth))
     setting = parse_setting(case.weather)
     degrade(clean, out, [setting.name], config, progress=False, source=f"stability:{case.name}")
     return out / setting.name
@@ -339,7 +340,8 @@ def synthesize(case: StabilityCase, clean: Path, out: Path) -> Path:
 def rewrite_scene(case: StabilityCase, source: Path, out: Path) -> Path:
     """``source`` with the case's image fill, training-view cut and point collapse, written to ``out``
     (with ``clean/`` holding the ground truth, as a synthesised setting folder)."""
-    from nimbus.data.io import load_scene, output_image_name, write_scene_into
+    from nimbus.data.io import load_scene, write_scene_into
+    from nimbus.data.scene_files import output_image_name
     from nimbus.utils.fs import atomic_dir
 
     scene = load_scene(source)
@@ -577,8 +579,9 @@ def to_markdown(rows: Sequence[dict], cases: Sequence[StabilityCase], options: S
 def write_report(out: str | Path, rows: Sequence[dict], cases: Sequence[StabilityCase], options: StabilityOptions,
                  overwrite: bool = False, wall_s: float | None = None) -> list[Path]:
     """``stability.csv``, ``stability.md`` and ``stability.json`` into ``out``, atomically (all or nothing)."""
-    from benchmark.score import jsonable, versions
+    from benchmark.score import versions
     from nimbus.utils.fs import atomic_dir
+    from nimbus.utils.jsonable import jsonable
 
     doc = {"format": "nimbus-bench-stability/1", "options": dataclasses.asdict(options), "versions": versions(),
            "wall_time_s": wall_s, "cases": [dataclasses.asdict(c) for c in cases],

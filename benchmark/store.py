@@ -46,7 +46,7 @@ import warnings
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Iterator
 
 from nimbus.errors import NimbusError
 
@@ -355,10 +355,3 @@ def export_parquet(root: str | os.PathLike, out: str | os.PathLike) -> Path:
     buf = io.BytesIO()
     df.to_parquet(buf, index=False)
     return atomic_write_bytes(out, buf.getvalue())
-
-
-def jsonable(obj: Any) -> Any:
-    """Replace non-finite floats by None and numpy scalars by Python ones (strict JSON)."""
-    from benchmark.score import jsonable as _jsonable
-
-    return _jsonable(obj)

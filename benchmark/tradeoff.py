@@ -477,7 +477,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from benchmark.grid import executor_from_args, options_from_args, run_grid, say_failed
     from benchmark.store import ResultsStore
-    from nimbus.train.config import parse_set_args
+    from nimbus.config_set import parse_set_args
 
     knobs = parse_knobs(args.knob)
     base = base_cell(args.scene, args.weather, args.method, args.preset, args.seed, args.size,

@@ -1,14 +1,13 @@
 """Validation of config dataclasses against a declarative table of accepted values.
 
-Each config class comes with a table ``{field name: Limit}`` (the trainer configs keep it
-in their ``LIMITS`` class attribute; the synthesizer's, for its sub-configs, in
-:data:`weather_synth.config.LIMITS`).  The Python type a field takes is read from its
-annotation (``int``, ``float``, ``bool``, ``str``, ``tuple[float, float]``,
-``tuple[float, float, float] | None``, ...); the table adds the range.  One checker,
-:func:`field_problem`, serves both the dataclasses' ``__post_init__`` (:func:`validate`)
-and the ``--set key=value`` parsers (:func:`check_field`, which names the value as typed),
-so a bad value is refused at the boundary with a message that names the key, the value
-and what is accepted, e.g. ``--set checkpoint_interval=0: must be an integer >= 1``.
+Each config class keeps its table ``{field name: Limit}`` in its ``LIMITS`` class attribute
+(:func:`limits_of`).  The Python type a field takes is read from its annotation (``int``,
+``float``, ``bool``, ``str``, ``tuple[float, float]``, ``tuple[float, float, float] | None``,
+...); the table adds the range.  One checker, :func:`field_problem`, serves both the
+dataclasses' ``__post_init__`` (:func:`validate`) and the ``--set key=value`` engine
+(:mod:`nimbus.config_set`, through :func:`check_field`, which names the value as typed), so a
+bad value is refused at the boundary with a message that names the key, the value and what
+is accepted, e.g. ``--set checkpoint_interval=0: must be an integer >= 1``.
 
 Rules that hold for every field, whatever its table entry says:
 
@@ -230,11 +229,6 @@ def field_problem(cls: type, name: str, value: Any, limits: Mapping[str, Limit])
     return f"must be {describe(shape, limit)}" + (f" and at most {INT_MAX}" if over else "")
 
 
-def given_as(key: str, raw: str) -> str:
-    """How a ``--set`` item is quoted in messages (a huge value is shortened)."""
-    return f"--set {key}={raw if len(raw) <= 60 else raw[:40] + f'... ({len(raw)} characters)'}"
-
-
 def check_field(cls: type, name: str, value: Any, limits: Mapping[str, Limit], given: str | None = None,
                 example: str | None = None) -> None:
     """Raise :class:`NimbusError` ``"<given>: must be ..."`` if ``value`` does not fit field ``name``.
@@ -247,7 +241,22 @@ def check_field(cls: type, name: str, value: Any, limits: Mapping[str, Limit], g
         raise NimbusError(f"{given or f'{name}={value!r}'}: {problem}" + (f", e.g. {example}" if example else ""))
 
 
-def validate(config: Any, limits: Mapping[str, Limit]) -> None:
-    """Check every field of the dataclass instance ``config`` against ``limits`` (first failure raises)."""
+def limits_of(cls: type) -> Mapping[str, Limit]:
+    """The table of accepted values of config class ``cls`` (its ``LIMITS``; empty if it has none)."""
+    return getattr(cls, "LIMITS", {})
+
+
+def validate(config: Any, limits: Mapping[str, Limit] | None = None) -> None:
+    """Check every field of the dataclass instance ``config`` (first failure raises :class:`NimbusError`).
+
+    ``limits`` defaults to the class's own table (:func:`limits_of`).  Fields holding another
+    config dataclass (``SynthConfig.haze``) are checked the same way against their class's table.
+    """
+    cls = type(config)
+    limits = limits_of(cls) if limits is None else limits
     for f in dataclasses.fields(config):
-        check_field(type(config), f.name, getattr(config, f.name), limits)
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            validate(value)
+        else:
+            check_field(cls, f.name, value, limits)

@@ -10,7 +10,8 @@ import pytest
 
 from nimbus.data.camera import Camera
 from nimbus.data.images import read_image, write_image
-from nimbus.data.io import detect_format, image_size, load_scene, write_scene, write_scene_into
+from nimbus.data.io import detect_format, load_scene, write_scene, write_scene_into
+from nimbus.data.scene_files import image_size
 from nimbus.data.scene import Scene, View
 from nimbus.errors import NimbusError
 from nimbus.utils.fs import atomic_dir

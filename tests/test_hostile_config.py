@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from nimbus.config_set import apply_overrides, parse_set_args
 from nimbus.config_validation import INT_MAX, field_shapes, at_least, field_problem, validate
 from nimbus.errors import NimbusError
 from nimbus.nimbusgs.config import NimbusConfig
@@ -22,8 +23,7 @@ from nimbus.nimbusgs.config import PRESETS as NIMBUS_PRESETS
 from nimbus.train.config import PRESETS as GS_PRESETS
 from nimbus.train.config import TrainConfig
 from nimbus.methods.registry import METHODS, get_method
-from weather_synth.config import LIMITS as SYNTH_LIMITS
-from weather_synth.config import SynthConfig, apply_overrides, protocol_config
+from weather_synth.config import SynthConfig, protocol_config
 
 
 def _numeric_fields(cls):
@@ -67,7 +67,7 @@ def _synth_leaves():
 def test_bad_trainer_set_value_names_key_value_and_range(key, raw, accepted):
     for presets in (GS_PRESETS, NIMBUS_PRESETS):
         with pytest.raises(NimbusError) as e:
-            presets["tiny"].with_overrides({key: raw})
+            apply_overrides(presets["tiny"], {key: raw})
         assert str(e.value).startswith(f"--set {key}={raw}: must be {accepted}")
 
 
@@ -87,13 +87,13 @@ def test_bad_trainer_set_value_names_key_value_and_range(key, raw, accepted):
 ])
 def test_bad_nimbusgs_set_value_names_key_value_and_range(key, raw, accepted):
     with pytest.raises(NimbusError) as e:
-        NIMBUS_PRESETS["tiny"].with_overrides({key: raw})
+        apply_overrides(NIMBUS_PRESETS["tiny"], {key: raw})
     assert str(e.value).startswith(f"--set {key}={raw}: must be ") and accepted in str(e.value)
 
 
 def test_tuple_errors_show_the_syntax_to_use():
     with pytest.raises(NimbusError, match=r"e\.g\. background=0\.0,0\.0,0\.0$"):
-        GS_PRESETS["tiny"].with_overrides({"background": "0.5"})
+        apply_overrides(GS_PRESETS["tiny"], {"background": "0.5"})
 
 
 @pytest.mark.parametrize("cls", [TrainConfig, NimbusConfig])
@@ -129,13 +129,13 @@ def test_presets_variants_and_extreme_but_valid_values_still_construct():
             validate(config, config.LIMITS)
     tiny = NIMBUS_PRESETS["tiny"]
     # the stability report's extreme-but-legal settings, and the ablations' off switches
-    ok = tiny.with_overrides({"init_opacity": "1e-4", "lr_scales": "50", "near_plane": "1e6", "ggs_clip": "0,inf",
+    ok = apply_overrides(tiny, {"init_opacity": "1e-4", "lr_scales": "50", "near_plane": "1e6", "ggs_clip": "0,inf",
                               "box_content_factor": "0", "lambda_dcp": "0", "lambda_tv": "0", "test_interval": "0",
                               "background": "1,1,1", "consistency_neighbours": "0", "dcp_temperature": "0"})
     assert ok.ggs_clip == (0.0, math.inf) and ok.background == (1.0, 1.0, 1.0)
-    assert GS_PRESETS["tiny"].with_overrides({"iterations": "1e3"}).iterations == 1000
+    assert apply_overrides(GS_PRESETS["tiny"], {"iterations": "1e3"}).iterations == 1000
     # stretching the tiny schedule 10x keeps its "never" opacity reset (10**9) a legal integer
-    longer = GS_PRESETS["tiny"].with_overrides({"iterations": "3000"})
+    longer = apply_overrides(GS_PRESETS["tiny"], {"iterations": "3000"})
     assert longer.opacity_reset_interval == INT_MAX and longer.densify_until == 10 * GS_PRESETS["tiny"].densify_until
 
 
@@ -161,7 +161,7 @@ def test_a_numeric_field_without_a_limit_is_a_programming_error():
     ("haze.airlight_range=[0.2, 1.5]", "(lo, hi), 2 items each a number in [0, 1]"),
     ("haze.fog_grid=0", "an integer >= 1"),
     ("haze.mode=fog", "one of onerestore, homogeneous, heterogeneous"),
-    ("haze.quantize_depth=1", "true or false"),
+    ("haze.quantize_depth=2", "true or false"),  # 1 / 0 are true / false, as for the trainer's booleans
     ("rain.slices=2.5", "an integer >= 1"),
     ("rain.angle_jitter=-Infinity", "a number in [0, 90]"),
     ("snow.color=2", "a number in [0, 1]"),
@@ -172,28 +172,28 @@ def test_a_numeric_field_without_a_limit_is_a_programming_error():
 ])
 def test_bad_synth_set_value_names_key_value_and_range(item, accepted):
     with pytest.raises(NimbusError) as e:
-        apply_overrides(protocol_config(), [item])
+        apply_overrides(protocol_config(), parse_set_args([item]))
     message = str(e.value)
     assert message.startswith(f"--set {item}: must be ") and accepted in message
 
 
 def test_synth_set_keeps_its_grammar_and_legal_extremes():
-    cfg = apply_overrides(protocol_config(), ["haze.beta=Infinity", "haze.airlight=0.8", "rain.slices=3.0",
-                                              "haze.fog_grid=1e3", "haze.beta_range=[0, 0]"])
+    cfg = apply_overrides(protocol_config(), parse_set_args(["haze.beta=Infinity", "haze.airlight=0.8", "rain.slices=3.0",
+                                                             "haze.fog_grid=1e3", "haze.beta_range=[0, 0]"]))
     assert cfg.haze.beta == math.inf and cfg.haze.airlight == 0.8 and cfg.haze.beta_range == (0, 0)
     assert cfg.rain.slices == 3 and isinstance(cfg.rain.slices, int) and cfg.haze.fog_grid == 1000
-    assert apply_overrides(cfg, ["haze.beta=null"]).haze.beta is None
+    assert apply_overrides(cfg, parse_set_args(["haze.beta=null"])).haze.beta is None
 
 
 def test_every_numeric_synth_leaf_refuses_nan_through_set():
     leaves = _synth_leaves()
     assert len(leaves) >= 30
     for key, cls, name in leaves:
-        assert name in SYNTH_LIMITS[cls], key
+        assert name in cls.LIMITS, key
         shape = field_shapes(cls)[name]
         raw = json.dumps([math.nan] * shape.length) if shape.length else "NaN"
         with pytest.raises(NimbusError, match="must be") as e:
-            apply_overrides(protocol_config(), [f"{key}={raw}"])
+            apply_overrides(protocol_config(), parse_set_args([f"{key}={raw}"]))
         assert str(e.value).startswith(f"--set {key}={raw}: "), key
 
 
@@ -207,10 +207,10 @@ def test_synth_config_checks_its_whole_tree_on_construction():
 
 def test_a_huge_or_deeply_nested_value_gives_a_short_message():
     with pytest.raises(NimbusError) as e:
-        apply_overrides(protocol_config(), ["haze.beta=" + "[" * 100_000])
+        apply_overrides(protocol_config(), parse_set_args(["haze.beta=" + "[" * 100_000]))
     assert len(str(e.value)) < 200 and "(100000 characters)" in str(e.value)
     with pytest.raises(NimbusError) as e:
-        GS_PRESETS["tiny"].with_overrides({"near_plane": "9" * 5000})  # parses to inf
+        apply_overrides(GS_PRESETS["tiny"], {"near_plane": "9" * 5000})  # parses to inf
     assert len(str(e.value)) < 200
 
 

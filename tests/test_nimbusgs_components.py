@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from nimbus.config_set import apply_overrides
 from nimbus.data.camera import Camera
 from nimbus.errors import NimbusError
 from nimbus.nimbusgs.airlight import (ConstantAirlight, NetworkAirlight, SHAirlight, estimate_airlight,
@@ -413,23 +414,23 @@ def test_config_presets_variants_and_validation():
     assert (paper.lr_scales_init, paper.lr_extinction, paper.lr_airlight) == (2e-3, 5e-3, 5e-4)
     for c in (tiny, fast):
         assert 0 < c.m_init < c.iterations and c.m_init / c.iterations == pytest.approx(4000 / 30000, rel=0.25)
-    longer = fast.with_overrides({"iterations": "6000"})
+    longer = apply_overrides(fast, {"iterations": "6000"})
     assert longer.m_init == 2 * fast.m_init and longer.densify_until == 2 * fast.densify_until
-    assert fast.with_overrides({"components": "csm,ggs", "ggs_clip": "0,10"}).forced_components == {"csm", "ggs"}
+    assert apply_overrides(fast, {"components": "csm,ggs", "ggs_clip": "0,10"}).forced_components == {"csm", "ggs"}
     assert paper_m_init(fast, 1000) == 100 and paper_m_init(paper, 15000) == 15000
     assert parse_components("auto") is None and parse_components("none") == frozenset()
     with pytest.raises(NimbusError, match="components"):
-        fast.with_overrides({"components": "csm,fog"})
+        apply_overrides(fast, {"components": "csm,fog"})
     with pytest.raises(NimbusError, match="m_init"):
         NimbusConfig(iterations=100, m_init=100)
     with pytest.raises(NimbusError, match="extinction"):
-        fast.with_overrides({"extinction": "voxels"})
+        apply_overrides(fast, {"extinction": "voxels"})
     with pytest.raises(NimbusError, match="unknown preset"):
         preset("huge")
     with pytest.raises(NimbusError, match="residual_tophat"):
-        fast.with_overrides({"residual_tophat": "2"})
+        apply_overrides(fast, {"residual_tophat": "2"})
     with pytest.raises(NimbusError, match="residual_outlier_scope"):
-        fast.with_overrides({"residual_outlier_scope": "some"})
+        apply_overrides(fast, {"residual_outlier_scope": "some"})
 
 
 def test_named_methods_are_registered_with_their_settings():

@@ -21,6 +21,7 @@ from benchmark.store import ResultsStore
 from benchmark.tradeoff import (CSV_COLUMNS, PARETO_COLUMNS, SweepPoint, base_cell, build_sweep, pareto_front,
                                 parse_knobs, sweep_cells, tradeoff_rows)
 from nimbus.cli_util import run_cli
+from nimbus.config_set import apply_overrides
 from nimbus.data.images import read_image
 from nimbus.errors import NimbusError
 from nimbus.train.config import PRESETS
@@ -199,7 +200,7 @@ def test_bad_knob_exits_2_with_one_error_line_and_no_output(tmp_path, capsys, kn
 # --- train_downscale --------------------------------------------------------------------------------
 def test_train_downscale_area_averages_training_views_and_keeps_test_views(make_scene, tmp_path):
     scene = make_scene(n_views=4, width=32, height=24)
-    config = PRESETS["tiny"].with_overrides({"train_downscale": "2"})
+    config = apply_overrides(PRESETS["tiny"], {"train_downscale": "2"})
     t = Runner("3dgs", scene, config, tmp_path / "run", progress=False, device=torch.device("cpu"))
     src, cam = scene.train_views[0], scene.train_views[0].camera
     small = t.method.train_views[0]
@@ -209,4 +210,4 @@ def test_train_downscale_area_averages_training_views_and_keeps_test_views(make_
     np.testing.assert_allclose(t.method.train_images[0].numpy(), blocks, atol=1e-6)
     assert t.scene.test_views[0].camera.width == 32
     with pytest.raises(NimbusError, match="train_downscale"):
-        PRESETS["tiny"].with_overrides({"train_downscale": "0"})
+        apply_overrides(PRESETS["tiny"], {"train_downscale": "0"})

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from nimbus.config_set import apply_overrides
 from nimbus.data.builtin import render_builtin
 from nimbus.errors import NimbusError
 from nimbus.train.config import TrainConfig, preset
@@ -43,13 +44,13 @@ def test_presets_scale_the_schedule():
     for c in (tiny, fast, paper):
         assert 0 < c.densify_from < c.densify_until <= c.iterations
         assert (c.densify_until - c.densify_from) // c.densify_interval >= 3  # short runs still densify
-    longer = fast.with_overrides({"iterations": "6000"})
+    longer = apply_overrides(fast, {"iterations": "6000"})
     assert longer.densify_until == 2 * fast.densify_until
-    assert fast.with_overrides({"lr_opacity": "0.1"}).lr_opacity == 0.1
+    assert apply_overrides(fast, {"lr_opacity": "0.1"}).lr_opacity == 0.1
     with pytest.raises(NimbusError, match="unknown setting"):
-        fast.with_overrides({"no_such_field": "1"})
+        apply_overrides(fast, {"no_such_field": "1"})
     with pytest.raises(NimbusError, match="--set iterations=many: must be an integer >= 1"):
-        fast.with_overrides({"iterations": "many"})
+        apply_overrides(fast, {"iterations": "many"})
     with pytest.raises(NimbusError):
         preset("huge")
 

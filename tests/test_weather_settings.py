@@ -5,7 +5,8 @@ import hashlib
 import pytest
 
 from nimbus.errors import NimbusError
-from weather_synth.config import SynthConfig, apply_overrides, protocol_config
+from nimbus.config_set import apply_overrides, parse_set_args
+from weather_synth.config import SynthConfig, protocol_config
 from weather_synth.seeds import derive_seed, rng_for
 from weather_synth.settings import ALL_SETTING_NAMES, parse_weather
 
@@ -55,20 +56,20 @@ def test_derived_seeds_are_sha256_of_the_names_and_independent():
 
 
 def test_overrides_reach_nested_fields_and_refuse_unknown_keys():
-    cfg = apply_overrides(protocol_config("physical"), ["haze.fog_noise_amplitude=0.25", "rain.slices=3",
-                                                        "seed=4", "haze.airlight=[0.7,0.8,0.9]",
-                                                        "compose.linear=false"])
+    items = ["haze.fog_noise_amplitude=0.25", "rain.slices=3", "seed=4", "haze.airlight=[0.7,0.8,0.9]",
+             "compose.linear=false"]
+    cfg = apply_overrides(protocol_config("physical"), parse_set_args(items))
     assert cfg.haze.fog_noise_amplitude == 0.25 and cfg.rain.slices == 3 and cfg.seed == 4
     assert cfg.haze.airlight == (0.7, 0.8, 0.9) and cfg.compose.linear is False
     with pytest.raises(NimbusError, match="unknown setting 'haze.bogus'.*valid keys"):
-        apply_overrides(cfg, ["haze.bogus=1"])
+        apply_overrides(cfg, parse_set_args(["haze.bogus=1"]))
     with pytest.raises(NimbusError, match="haze.visibility_scale=thick: must be a finite number > 0"):
-        apply_overrides(cfg, ["haze.visibility_scale=thick"])
+        apply_overrides(cfg, parse_set_args(["haze.visibility_scale=thick"]))
     with pytest.raises(NimbusError, match="key=value"):
-        apply_overrides(cfg, ["haze.beta"])
+        apply_overrides(cfg, parse_set_args(["haze.beta"]))
     # Values are validated against the config's limits before they are set.
     with pytest.raises(NimbusError, match=r"haze.beta=-1: must be a number >= 0"):
-        apply_overrides(cfg, ["haze.beta=-1"])
+        apply_overrides(cfg, parse_set_args(["haze.beta=-1"]))
 
 
 def test_protocol_presets():

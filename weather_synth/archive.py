@@ -1,4 +1,4 @@
-"""Deterministic files of a degraded dataset: per-view layer archives and JSON-able values.
+"""Deterministic files of a degraded dataset: per-view layer archives.
 
 Layer archives are ``.npz`` files (``np.load`` reads them) written by our own
 zip writer: every entry has a fixed timestamp (1980-01-01), fixed permissions,
@@ -13,7 +13,7 @@ import io
 import os
 import zipfile
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Mapping
 
 import numpy as np
 
@@ -53,20 +53,3 @@ def read_layers(path: str | os.PathLike) -> dict[str, np.ndarray]:
         raise NimbusError(f"layer archive {path} does not exist")
     with np.load(path, allow_pickle=False) as z:
         return {k: z[k] for k in z.files}
-
-
-def jsonable(obj: Any) -> Any:
-    """Tuples -> lists, numpy scalars -> Python, non-finite floats -> strings, paths -> str (recursively)."""
-    if isinstance(obj, dict):
-        return {str(k): jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not np.isfinite(obj):
-        return str(obj)
-    if isinstance(obj, os.PathLike):
-        return os.fspath(obj)
-    return obj

@@ -29,9 +29,11 @@ back bit for bit.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
+from nimbus.config_validation import Limit, fraction, one_of
 from nimbus.errors import NimbusError
 from weather_synth.haze import ViewHaze
 from weather_synth.particles import ParticleSlice
@@ -56,6 +58,11 @@ class ComposeConfig:
     order: str = "onerestore"
     linear: bool = False
     snow_color: float = 1.0
+
+    #: The accepted values of each field (see :mod:`nimbus.config_validation`).
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "order": one_of(*COMPOSITION_ORDERS), "snow_color": fraction(),
+    }
 
     def __post_init__(self) -> None:
         if self.order not in COMPOSITION_ORDERS:

@@ -86,7 +86,8 @@ from nimbus.data.scene import Scene, View
 from nimbus.errors import NimbusError
 from nimbus.utils.fs import (atomic_dir, atomic_write_bytes, atomic_write_json, check_output_dir, confined_path,
                              refuse_overlap, remove_stale_temps, sha256_file)
-from weather_synth.archive import encode_layers, jsonable
+from nimbus.utils.jsonable import jsonable
+from weather_synth.archive import encode_layers
 from weather_synth.config import SynthConfig
 from weather_synth.depth import DepthConfig, visible_point_indices
 from weather_synth.depth_consistency import scene_depth_consistency
@@ -362,14 +363,14 @@ def _degrade_into(scene: Scene, out: Path, settings: Sequence[WeatherSetting], c
                                          time.perf_counter() - start)
                 atomic_write_json(tmp / MANIFEST, jsonable(_manifest(scene, setting, config, synth, view_records,
                                                                      summary, fmt, source, point_colours,
-                                                                     consistency)))
+                                                                     consistency), nonfinite="text"))
             summary.seconds = time.perf_counter() - start
             summaries.append(summary)
             clean_copy = out / setting.name / CLEAN_DIR
     atomic_write_json(out / INDEX, jsonable({
         "format": FORMAT, "version": __version__, "protocol": config.protocol, "seed": config.seed,
         "source": source, "settings": [s.to_dict() for s in summaries],
-    }))
+    }, nonfinite="text"))
     return summaries
 
 

@@ -47,11 +47,12 @@ import functools
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, ClassVar
 
 import cv2
 import numpy as np
 
+from nimbus.config_validation import Limit, at_least, between, fraction, one_of, positive
 from nimbus.data.camera import Camera
 from nimbus.data.scene import Scene, View
 from nimbus.errors import NimbusError
@@ -119,6 +120,15 @@ class DepthConfig:
     recon_iterations: int = 600
     recon_min_alpha: float = 0.5
     recon_cache: str = ""
+
+    #: The accepted values of each field (see :mod:`nimbus.config_validation`).
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "align": one_of(*ALIGN_METHODS),
+        "min_points": at_least(2), "occlusion_window": fraction(note="of the image width"),
+        "occlusion_tolerance": at_least(0), "guided_radius": fraction(note="of the image width"),
+        "guided_eps": positive(), "input_size": at_least(14, note="pixels"),
+        "recon_iterations": at_least(2), "recon_min_alpha": between(0, 1, lo_open=True, hi_open=True),
+    }
 
     def __post_init__(self) -> None:
         kind = self.source.split(":", 1)[0]

@@ -37,14 +37,15 @@ distance.  Nothing produces NaN.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Callable
+from typing import Callable, ClassVar
 
 import cv2
 import numpy as np
 
+from nimbus.config_validation import Limit, at_least, fraction, one_of, positive
 from nimbus.data.camera import Camera
 from nimbus.errors import NimbusError
-from weather_synth.archive import jsonable
+from nimbus.utils.jsonable import jsonable
 from weather_synth.depth import ray_norm, sanitize_depth
 from weather_synth.medium import HeightFogMedium, HomogeneousMedium, RayIntegrator, check_beta
 from weather_synth.seeds import rng_for
@@ -130,6 +131,19 @@ class HazeConfig:
     fog_far: float = 4.0
     fog_grid: int = 40
     fog_table_samples: int = 32
+
+    #: The accepted values of each field (see :mod:`nimbus.config_validation`).
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "mode": one_of(*HAZE_MODES), "sampling": one_of(*SAMPLING),
+        "beta": at_least(0, finite=False, note="inf: opaque"), "beta_range": at_least(0, ordered=True),
+        "visibility": positive(note="scene units"), "visibility_scale": positive(),
+        "airlight": fraction(scalar=True, note="R, G, B"), "airlight_range": fraction(ordered=True),
+        "depth_cap": at_least(0), "box_size": at_least(1, note="pixels; 1: no filter"),
+        "max_distance": positive(note="scene units"),
+        "fog_height_scale": positive(), "fog_noise_amplitude": fraction(), "fog_noise_scale": positive(),
+        "fog_noise_octaves": at_least(1), "fog_far": positive(), "fog_grid": at_least(1),
+        "fog_table_samples": at_least(1),
+    }
 
     def __post_init__(self) -> None:
         if self.mode not in HAZE_MODES:
@@ -332,12 +346,12 @@ class HazeModel:
 
     def describe(self) -> dict:
         """Scene-level parameters for the manifest."""
-        d = {"config": jsonable(asdict(self.config)), "depth_scale": self.depth_scale}
+        d = {"config": jsonable(asdict(self.config), nonfinite="text"), "depth_scale": self.depth_scale}
         if self.config.physical or self.config.sampling == "scene":
             d["beta"] = self._scene_beta
             d["airlight"] = self._scene_airlight.tolist()
         if isinstance(self.medium, HeightFogMedium):
-            d["medium"] = jsonable(asdict(self.medium))
+            d["medium"] = jsonable(asdict(self.medium), nonfinite="text")
             d["medium"]["kind"] = "height_fog"
         elif self.medium is not None:
             d["medium"] = {"kind": "homogeneous", "beta": self.medium.beta}

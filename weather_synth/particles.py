@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -190,6 +190,38 @@ def hide_behind(layer: np.ndarray, z: float, surface_depth: np.ndarray | None) -
     if surface_depth is None or z <= 0:
         return layer
     return np.where(surface_depth < z, np.float32(0), layer)
+
+
+def depth_slices(rng: np.random.Generator, depth_range: tuple[float, float], count: int, scale: float,
+                 depth_aware: bool) -> list[tuple[float, float]]:
+    """``(z, k)`` of each slice of a particle family: its depth and its size factor ``z_ref / z``.
+
+    Depth-aware: ``count`` slices from :func:`slice_depths` (``z_ref`` the geometric mean of the
+    range, in scene units).  Otherwise one slice in front of everything, ``(0, 1)``, and no draw
+    from ``rng``.
+    """
+    if not depth_aware:
+        return [(0.0, 1.0)]
+    z_ref = np.sqrt(depth_range[0] * depth_range[1]) * scale
+    # z_ref / z with z the array's float64 item, as the rain and snow loops always computed it
+    return [(float(z), z_ref / z) for z in slice_depths(rng, depth_range, count, scale)]
+
+
+@dataclass
+class ParticleResult:
+    """One view's rain or snow: its slices and JSON-able ``info`` (``angle_deg`` and one record per family)."""
+
+    slices: list[ParticleSlice] = field(default_factory=list)
+    info: dict = field(default_factory=dict)
+
+    @classmethod
+    def start(cls, camera: Camera, fall_dir: np.ndarray, families: str) -> "ParticleResult":
+        """An empty result for ``camera``, ``info`` holding the fall angle and an empty list ``families``."""
+        return cls(info={"angle_deg": image_fall_angle(camera, fall_dir), families: []})
+
+    def add(self, kind: str, layer: np.ndarray, z: float, surface_depth: np.ndarray | None) -> None:
+        """Append a slice at depth ``z``, hidden behind nearer surfaces (never at ``z`` 0 or without ``surface_depth``)."""
+        self.slices.append(ParticleSlice(kind, hide_behind(layer, z, surface_depth).astype(np.float32), z))
 
 
 def coverage(slices: list[ParticleSlice], shape: tuple[int, int], threshold: float = 0.01) -> float:

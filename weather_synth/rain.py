@@ -22,21 +22,21 @@ range) and a slice is hidden behind nearer surfaces.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
+from typing import ClassVar
 
 import numpy as np
 
+from nimbus.config_validation import Limit, at_least, between
 from nimbus.data.camera import Camera
 from nimbus.errors import NimbusError
 from weather_synth.particles import (
-    ParticleSlice,
-    hide_behind,
-    image_fall_angle,
+    ParticleResult,
+    depth_slices,
     motion_kernel,
     pixel_scale,
     poisson_seeds,
     render_streaks,
-    slice_depths,
 )
 
 RAIN_PRESETS = ("light", "medium", "heavy")
@@ -106,6 +106,12 @@ class RainConfig:
     angle_jitter: float = 3.0
     slices: int = 2
 
+    #: The accepted values of each field (see :mod:`nimbus.config_validation`).
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "amount": at_least(0), "density_scale": at_least(0), "length_scale": at_least(0),
+        "angle_jitter": between(0, 90, note="degrees"), "slices": at_least(1),
+    }
+
     def __post_init__(self) -> None:
         for name in ("amount", "density_scale", "length_scale"):
             v = getattr(self, name)
@@ -140,15 +146,9 @@ def rain_preset(name: str, **overrides) -> RainConfig:
     return replace(RainConfig(amount=amount, density_scale=dens, length_scale=length), **overrides)
 
 
-@dataclass
-class RainResult:
-    slices: list[ParticleSlice] = field(default_factory=list)
-    info: dict = field(default_factory=dict)
-
-
 def render_rain(camera: Camera, rng: np.random.Generator, config: RainConfig, fall_dir: np.ndarray,
                 surface_depth: np.ndarray | None = None, depth_scale: float = 1.0,
-                depth_aware: bool = False) -> RainResult:
+                depth_aware: bool = False) -> ParticleResult:
     """Render one view's rain slices.
 
     Parameters
@@ -167,26 +167,21 @@ def render_rain(camera: Camera, rng: np.random.Generator, config: RainConfig, fa
 
     Returns
     -------
-    RainResult
+    ParticleResult
         ``slices`` (additive layers, float32 (H, W)) and JSON-able ``info``.
     """
     H, W = camera.height, camera.width
     px = pixel_scale(W)
-    base_angle = image_fall_angle(camera, fall_dir)
-    info = {"angle_deg": base_angle, "layers": []}
-    result = RainResult(info=info)
+    result = ParticleResult.start(camera, fall_dir, "layers")
     if not config.active:
         return result
     n_slices = config.slices if depth_aware else 1
     for layer in config.layers:
         weight = float(rng.uniform(*layer.weight)) * config.amount
         length = float(rng.uniform(*layer.length)) * config.length_scale
-        angle = base_angle + float(rng.uniform(-config.angle_jitter, config.angle_jitter))
-        zs = slice_depths(rng, layer.depth, n_slices, depth_scale) if depth_aware else np.zeros(1)
-        z_ref = np.sqrt(layer.depth[0] * layer.depth[1]) * depth_scale
+        angle = result.info["angle_deg"] + float(rng.uniform(-config.angle_jitter, config.angle_jitter))
         rec = {"name": layer.name, "weight": weight, "length_px": length * px, "angle_deg": angle, "slices": []}
-        for z in zs:
-            k = z_ref / z if depth_aware else 1.0
+        for z, k in depth_slices(rng, layer.depth, n_slices, depth_scale, depth_aware):
             L_true = length * px * k
             sigma = layer.width * px * k
             L = max(1.0, L_true)
@@ -199,9 +194,8 @@ def render_rain(camera: Camera, rng: np.random.Generator, config: RainConfig, fa
             seeds = poisson_seeds(rng, (H + 2 * pad, W + 2 * pad), per_pixel, (0.6, 1.0))
             streaks = render_streaks(seeds, kernel)[pad:pad + H, pad:pad + W]
             streaks = np.minimum(streaks, np.float32(1)) * np.float32(weight * dim)
-            streaks = hide_behind(streaks, float(z), surface_depth if depth_aware else None)
-            result.slices.append(ParticleSlice("rain", streaks.astype(np.float32), float(z)))
-            rec["slices"].append({"z": float(z), "length_px": float(L_true), "sigma_px": float(sigma),
+            result.add("rain", streaks, z, surface_depth)
+            rec["slices"].append({"z": z, "length_px": float(L_true), "sigma_px": float(sigma),
                                   "brightness": float(weight * dim)})
-        info["layers"].append(rec)
+        result.info["layers"].append(rec)
     return result

@@ -17,22 +17,22 @@ slices at stratified depths; radius, blur and streak length scale with
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
+from typing import ClassVar
 
 import cv2
 import numpy as np
 
+from nimbus.config_validation import Limit, at_least, fraction
 from nimbus.data.camera import Camera
 from nimbus.errors import NimbusError
 from weather_synth.particles import (
     MIN_SIGMA,
-    ParticleSlice,
+    ParticleResult,
     convolve,
-    hide_behind,
-    image_fall_angle,
+    depth_slices,
     motion_kernel,
     pixel_scale,
-    slice_depths,
 )
 
 SNOW_PRESETS = ("light", "medium", "heavy")
@@ -106,6 +106,11 @@ class SnowConfig:
     color: float = 1.0
     slices: int = 2
 
+    #: The accepted values of each field (see :mod:`nimbus.config_validation`).
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "amount": at_least(0), "size_scale": at_least(0), "color": fraction(), "slices": at_least(1),
+    }
+
     def __post_init__(self) -> None:
         for name in ("amount", "size_scale"):
             v = getattr(self, name)
@@ -136,12 +141,6 @@ def snow_preset(name: str, **overrides) -> SnowConfig:
         raise NimbusError(f"unknown snow intensity {name!r}; use one of {SNOW_PRESETS} or a number (amount)")
     amount, size = _PRESET_SCALES[key]
     return replace(SnowConfig(amount=amount, size_scale=size), **overrides)
-
-
-@dataclass
-class SnowResult:
-    slices: list[ParticleSlice] = field(default_factory=list)
-    info: dict = field(default_factory=dict)
 
 
 # At most this many flakes per canvas pixel are drawn one by one; the rest of a denser snowfall
@@ -175,27 +174,22 @@ def _draw_flakes(rng: np.random.Generator, shape: tuple[int, int], count: int, r
 
 def render_snow(camera: Camera, rng: np.random.Generator, config: SnowConfig, fall_dir: np.ndarray,
                 surface_depth: np.ndarray | None = None, depth_scale: float = 1.0,
-                depth_aware: bool = False) -> SnowResult:
+                depth_aware: bool = False) -> ParticleResult:
     """Render one view's snow slices (alpha masks, float32 (H, W) in [0, 1]) and JSON-able info.
 
     Parameters are as for :func:`weather_synth.rain.render_rain`, with the view's snow stream.
     """
     H, W = camera.height, camera.width
     px = pixel_scale(W)
-    base_angle = image_fall_angle(camera, fall_dir)
-    info = {"angle_deg": base_angle, "classes": []}
-    result = SnowResult(info=info)
+    result = ParticleResult.start(camera, fall_dir, "classes")
     if not config.active:
         return result
     n_slices = config.slices if depth_aware else 1
     for c in config.classes:
         streak = float(rng.uniform(*c.streak)) * config.size_scale
-        angle = base_angle + float(rng.uniform(-c.flutter, c.flutter))
-        zs = slice_depths(rng, c.depth, n_slices, depth_scale) if depth_aware else np.zeros(1)
-        z_ref = np.sqrt(c.depth[0] * c.depth[1]) * depth_scale
+        angle = result.info["angle_deg"] + float(rng.uniform(-c.flutter, c.flutter))
         rec = {"name": c.name, "angle_deg": angle, "streak_px": streak * px, "slices": []}
-        for z in zs:
-            k = z_ref / z if depth_aware else 1.0
+        for z, k in depth_slices(rng, c.depth, n_slices, depth_scale, depth_aware):
             s = px * k * config.size_scale
             L = max(1.0, streak * px * k)
             kernel = motion_kernel(L, angle, max(c.blur * s, 0.0))
@@ -214,9 +208,8 @@ def render_snow(camera: Camera, rng: np.random.Generator, config: SnowConfig, fa
                 area = np.pi * np.mean(np.square(np.maximum(radius, MIN_RADIUS)))
                 veil = (1 - math.exp(-(expected - cap) * area / (shape[0] * shape[1]))) * np.mean(c.opacity)
                 alpha = 1 - (1 - alpha) * np.float32(1 - veil)
-            alpha = hide_behind(alpha, float(z), surface_depth if depth_aware else None)
-            result.slices.append(ParticleSlice("snow", alpha.astype(np.float32), float(z)))
-            rec["slices"].append({"z": float(z), "count": count, "radius_px": [radius[0], radius[1]],
+            result.add("snow", alpha, z, surface_depth)
+            rec["slices"].append({"z": z, "count": count, "radius_px": [radius[0], radius[1]],
                                   "streak_px": float(L), "blur_px": float(c.blur * s)})
-        info["classes"].append(rec)
+        result.info["classes"].append(rec)
     return result

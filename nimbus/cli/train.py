@@ -17,8 +17,8 @@ from typing import Sequence
 
 from nimbus.cli_util import MAX_SEED, ArgumentParser, HelpFormatter, run_cli, seed_arg
 from nimbus.errors import NimbusError
+from nimbus.config_set import apply_overrides, parse_set_args
 from nimbus.methods.registry import METHODS, get_method
-from nimbus.train.config import parse_set_args
 from nimbus.train.run_folder import check_downscale, load_scene_arg, scene_input_folder
 
 def parse_device(spec: str | None):
@@ -89,7 +89,7 @@ def _new_run(args, device):
         if "components" in overrides:
             raise NimbusError("give the components once: --components LIST or --set components=LIST, not both")
         overrides["components"] = args.components
-    config = base.with_overrides(overrides)
+    config = apply_overrides(base, overrides)
     check_downscale(args.scene, args.downscale)
     # Before anything is deleted: --out SCENE --overwrite (or an ancestor of the scene) would remove the input.
     out = check_output_dir(args.out, args.overwrite, inputs=[scene_input_folder(args.scene)])

@@ -46,7 +46,7 @@ import numpy as np
 import pycolmap
 
 from nimbus.data.camera import Camera
-from nimbus.data.io import (
+from nimbus.data.scene_files import (
     attach_aux_files,
     check_image_sizes,
     check_points_finite,

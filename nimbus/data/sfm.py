@@ -39,10 +39,11 @@ import numpy as np
 import pycolmap
 
 from nimbus.data.colmap import PINHOLE_MODELS, read_colmap
-from nimbus.data.io import list_images
+from nimbus.data.scene_files import list_images
 from nimbus.data.scene import Scene
 from nimbus.errors import NimbusError
 from nimbus.utils.fs import atomic_dir, atomic_write_json, check_output_dir
+from nimbus.utils.jsonable import jsonable
 
 GENERATOR = "nimbus.data.sfm"
 MATCHERS = ("exhaustive", "sequential")
@@ -501,13 +502,9 @@ def run_sfm(photos_dir: str | os.PathLike, out_dir: str | os.PathLike, overwrite
         _write_scene(rec, photos_dir, work, Path(tmp), model)
         atomic_write_json(Path(tmp) / "manifest.json", {
             "generator": GENERATOR, "photos": len(photos), "registered": report.registered,
-            "sfm_config": _jsonable(asdict(config)), "calibration": report.to_dict()})
+            "sfm_config": jsonable(asdict(config), nonfinite="text"), "calibration": report.to_dict()})
     scene = read_colmap(out_dir)
     return SfmResult(scene, len(scene), len(photos), report)
-
-
-def _jsonable(d: dict) -> dict:
-    return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
 
 
 def _reconstruct(photos_dir: Path, photos: list[str], work: Path, config: SfmConfig, model: str,

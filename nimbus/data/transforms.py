@@ -58,7 +58,7 @@ import numpy as np
 
 from nimbus.data.camera import Camera, finite_value, image_size_value
 from nimbus.data.images import IMAGE_EXTENSIONS
-from nimbus.data.io import (
+from nimbus.data.scene_files import (
     attach_aux_files,
     check_image_sizes,
     check_points_finite,

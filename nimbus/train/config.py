@@ -11,8 +11,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import ClassVar
 
-from nimbus.config_validation import (INT_MAX, Limit, at_least, between, check_field, fraction,
-                                     given_as, one_of, positive, validate)
+from nimbus.config_validation import INT_MAX, Limit, at_least, between, fraction, one_of, positive, validate
 from nimbus.errors import NimbusError
 from nimbus.render.backends import BACKENDS
 
@@ -115,7 +114,7 @@ class TrainConfig:
     }
 
     def __post_init__(self) -> None:
-        validate(self, self.LIMITS)
+        validate(self)
 
     def rescaled(self, iterations: int) -> "TrainConfig":
         """This config with every schedule step stretched or shrunk by ``iterations / self.iterations``."""
@@ -123,15 +122,12 @@ class TrainConfig:
         return dataclasses.replace(self, iterations=iterations, **{
             name: rescale_step(getattr(self, name), ratio) for name in SCHEDULE_FIELDS})
 
-    def with_overrides(self, overrides: dict[str, str]) -> "TrainConfig":
-        """Apply ``--set key=value`` overrides, parsing each value as the field's type.
+    def with_changes(self, changes: dict) -> "TrainConfig":
+        """This config with ``changes`` (field -> value) applied, as ``--set`` does (:mod:`nimbus.config_set`).
 
-        Each value is checked against :attr:`LIMITS` before anything else, so a bad one
-        raises :class:`NimbusError` naming it as typed (``--set near_plane=nan: must be ...``).
-        Changing ``iterations`` alone rescales the whole schedule (densification,
-        resets, SH steps) so a longer or shorter run keeps the preset's shape.
+        Changing ``iterations`` alone rescales the whole schedule (densification, resets, SH
+        steps) so a longer or shorter run keeps the preset's shape.
         """
-        changes = parse_overrides(self, overrides)
         config = self
         if "iterations" in changes and not SCHEDULE_FIELDS & changes.keys():
             config = config.rescaled(changes["iterations"])
@@ -148,67 +144,6 @@ def rescale_step(step: int, ratio: float) -> int:
     A preset's "never" (``opacity_reset_interval=10**9``) stretched by a longer run stays "never".
     """
     return min(max(int(round(step * ratio)), 1), INT_MAX)
-
-
-def apply_overrides(config, overrides: dict[str, str]):
-    """Return ``config`` (a frozen dataclass) with string overrides parsed to the fields' types."""
-    return dataclasses.replace(config, **parse_overrides(config, overrides))
-
-
-def parse_overrides(config, overrides: dict[str, str]) -> dict:
-    """``{key: raw text}`` -> ``{key: value}`` parsed as the fields of ``config`` and checked against its limits.
-
-    Raises NimbusError for an unknown key, text that does not parse, or a value out of range.
-    """
-    fields = {f.name: f for f in dataclasses.fields(config)}
-    limits = getattr(config, "LIMITS", {})
-    changes = {}
-    for key, raw in overrides.items():
-        if key not in fields:
-            close = ", ".join(sorted(n for n in fields if key.split("_")[0] in n)[:8]) or ", ".join(sorted(fields)[:12])
-            raise NimbusError(f"unknown setting {key!r}; known settings include: {close}")
-        given, current = given_as(key, raw), getattr(config, key)
-        # tuples are written comma-separated here (weather_synth's --set takes JSON lists)
-        example = f"{key}={','.join(map(str, current))}" if isinstance(current, tuple) else None
-        try:
-            value = _parse_like(current, raw)
-        except ValueError:
-            value = raw  # text where a number is meant: the check below refuses it with the accepted range
-        check_field(type(config), key, value, limits, given, example)
-        changes[key] = value
-    return changes
-
-
-def _parse_like(current, raw: str):
-    """``raw`` parsed as the type of ``current``; ValueError if it does not parse."""
-    if isinstance(current, bool):
-        if raw.lower() in ("1", "true", "yes", "on"):
-            return True
-        if raw.lower() in ("0", "false", "no", "off"):
-            return False
-        raise ValueError(raw)
-    if isinstance(current, int):
-        number = float(raw)  # "1e3" is an integer; "2.5", "inf" and "nan" are not
-        if not number.is_integer():
-            raise ValueError(raw)
-        return int(raw) if raw.strip().lstrip("+-").isdigit() else int(number)
-    if isinstance(current, float):
-        return float(raw)
-    if isinstance(current, tuple):
-        parts = [p for p in raw.replace("(", "").replace(")", "").split(",") if p.strip()]
-        return tuple(type(current[0])(p) for p in parts) if current else tuple(parts)
-    return raw
-
-
-def parse_set_args(items: list[str] | None) -> dict[str, str]:
-    """Parse ``["key=value", ...]`` from ``--set`` flags."""
-    out: dict[str, str] = {}
-    for item in items or []:
-        if "=" not in item:
-            raise NimbusError(f"--set expects key=value, got {item!r}")
-        k, v = item.split("=", 1)
-        out[k.strip()] = v.strip()
-    return out
 
 
 # Short runs cannot afford the Inria schedule's ~145 densification steps: each step can

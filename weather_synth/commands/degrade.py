@@ -6,8 +6,9 @@ import argparse
 from dataclasses import replace
 
 from nimbus.cli_util import MAX_SEED, seed_arg
+from nimbus.config_set import apply_overrides, parse_set_args
 from nimbus.errors import NimbusError
-from weather_synth.config import PROTOCOLS, SynthConfig, apply_overrides, protocol_config
+from weather_synth.config import PROTOCOLS, SynthConfig, protocol_config
 from weather_synth.compose import COMPOSITION_ORDERS
 from weather_synth.haze import HAZE_MODES
 from weather_synth.rain import RAIN_PRESETS, rain_preset
@@ -78,6 +79,14 @@ def _float(text: str, what: str) -> float:
         raise NimbusError(f"{what}: {text!r} is not a number") from None
 
 
+def _range(text: str, what: str) -> tuple[float, float] | None:
+    """``LO:HI`` as two numbers (a range to sample); None when ``text`` is one value."""
+    if ":" not in text:
+        return None
+    lo, hi = (_float(x, what) for x in text.split(":", 1))
+    return lo, hi
+
+
 def _intensity(text: str, preset, what: str):
     try:
         amount = float(text)
@@ -95,17 +104,14 @@ def config_from_args(args: argparse.Namespace, scene=None) -> SynthConfig:
     if args.haze_mode is not None:
         haze = replace(haze, mode=args.haze_mode)
     if args.beta is not None:
-        if ":" in args.beta:
-            lo, hi = (_float(x, "--beta") for x in args.beta.split(":", 1))
-            haze = replace(haze, beta=None, beta_range=(lo, hi))
-        else:
-            haze = replace(haze, beta=_float(args.beta, "--beta"))
+        span = _range(args.beta, "--beta")
+        haze = replace(haze, beta=None, beta_range=span) if span else replace(haze, beta=_float(args.beta, "--beta"))
     if args.visibility is not None:
         haze = replace(haze, visibility=args.visibility)
     if args.airlight is not None:
-        if ":" in args.airlight:
-            lo, hi = (_float(x, "--airlight") for x in args.airlight.split(":", 1))
-            haze = replace(haze, airlight=None, airlight_range=(lo, hi))
+        span = _range(args.airlight, "--airlight")
+        if span:
+            haze = replace(haze, airlight=None, airlight_range=span)
         else:
             vals = [_float(x, "--airlight") for x in args.airlight.split(",")]
             if len(vals) not in (1, 3):
@@ -123,7 +129,7 @@ def config_from_args(args: argparse.Namespace, scene=None) -> SynthConfig:
                     recon_cache=getattr(args, "depth_cache", None) or "")
     cfg = replace(cfg, haze=haze, rain=rain, snow=snow, compose=compose, depth=depth,
                   depth_aware=cfg.depth_aware if args.depth_aware is None else args.depth_aware)
-    return apply_overrides(cfg, args.set)
+    return apply_overrides(cfg, parse_set_args(args.set))
 
 
 BUILTIN_PREFIX = "builtin:"

@@ -1,0 +1,117 @@
+"""The package layout: no import cycles, and imports go one way (benchmark -> weather_synth -> nimbus).
+
+The import graph is read from the source with :mod:`ast` (nothing is imported), counting every
+``import`` statement, also those inside functions: a lazy import hides a cycle from Python's
+import machinery, not from a reader.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("nimbus", "weather_synth", "benchmark")
+#: Which packages each may import (the direction of the layers).
+ALLOWED = {"nimbus": {"nimbus"}, "weather_synth": {"weather_synth", "nimbus"},
+           "benchmark": {"benchmark", "weather_synth", "nimbus"}}
+
+
+def modules(root: Path, packages=PACKAGES) -> dict[str, Path]:
+    """Dotted module name -> file, for every ``.py`` under the packages (a package is its ``__init__``)."""
+    out = {}
+    for pkg in packages:
+        for path in sorted((root / pkg).rglob("*.py")):
+            parts = path.relative_to(root).with_suffix("").parts
+            out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    return out
+
+
+def import_graph(root: Path, packages=PACKAGES) -> dict[str, set[str]]:
+    """Module -> the project modules it imports (``from a.b import c`` counts ``a.b.c`` if that is a module)."""
+    mods = modules(root, packages)
+    graph: dict[str, set[str]] = {m: set() for m in mods}
+    for name, path in mods.items():
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    up = package.split(".")[:len(package.split(".")) - node.level + 1]
+                    base = ".".join(up + ([base] if base else []))
+                targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in mods else base for a in node.names]
+            else:
+                continue
+            for target in targets:
+                while target and target not in mods:  # a name inside a module -> that module
+                    target = target.rpartition(".")[0]
+                if target and target != name:
+                    graph[name].add(target)
+    return graph
+
+
+def cycles(graph: dict[str, set[str]], ignore=frozenset()) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph[v]):
+            if (v, w) in ignore:
+                continue
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+@pytest.fixture(scope="module")
+def graph():
+    return import_graph(ROOT)
+
+
+def test_no_import_cycles(graph):
+    assert len(graph) > 100  # the whole tree was read
+    assert cycles(graph) == []
+
+
+def test_imports_go_one_way(graph):
+    wrong = sorted((m, t) for m, targets in graph.items() for t in targets
+                   if t.split(".")[0] not in ALLOWED[m.split(".")[0]])
+    assert wrong == []
+
+
+def test_the_checks_can_fail(tmp_path):
+    for name, text in {"nimbus/__init__.py": "", "nimbus/a.py": "from nimbus.b import f\n",
+                       "nimbus/b.py": "def f():\n    from . import c\n", "nimbus/c.py": "import nimbus.a\n",
+                       "nimbus/d.py": "from nimbus import a\nfrom weather_synth.x import y\n",
+                       "weather_synth/__init__.py": "", "weather_synth/x.py": "y = 1\n"}.items():
+        (tmp_path / name).parent.mkdir(exist_ok=True)
+        (tmp_path / name).write_text(text)
+    graph = import_graph(tmp_path, ("nimbus", "weather_synth"))
+    assert cycles(graph) == [["nimbus.a", "nimbus.b", "nimbus.c"]]  # through a lazy, relative import
+    assert graph["nimbus.d"] == {"nimbus.a", "weather_synth.x"}  # a back-edge the direction test refuses
+    assert cycles(graph, {("nimbus.c", "nimbus.a")}) == []
