@@ -44,9 +44,7 @@ exits 1 when any row fails.  Outputs, written atomically into ``--out``: ``hosti
 
 from __future__ import annotations
 
-import csv
 import hashlib
-import io
 import json
 import os
 import re
@@ -62,6 +60,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
+from benchmark.report import rows_csv, shorten
 from nimbus.cli_util import pick_by_name
 from nimbus.errors import NimbusError
 
@@ -893,16 +892,11 @@ def run_report(cases: Sequence[HostileCase], work: str | Path,
             baseline = baselines[key]
         rows.append(run_case(case, work, base, baseline))
         r = rows[-1]
-        say(f"[{i}/{len(cases)}] {case.name}: {r['outcome']} ({_short(r['message'], 90)}) -> {r['verdict']}")
+        say(f"[{i}/{len(cases)}] {case.name}: {r['outcome']} ({shorten(r['message'], 90)}) -> {r['verdict']}")
     return rows
 
 
 # --- tables ------------------------------------------------------------------------------------
-def _short(text: str, n: int) -> str:
-    text = " ".join(str(text).split())
-    return text if len(text) <= n else text[: n - 3] + "..."
-
-
 def _cell(row: dict, col: str) -> str:
     v = row.get(col)
     if isinstance(v, list):
@@ -915,12 +909,7 @@ def _cell(row: dict, col: str) -> str:
 
 
 def to_csv(rows: Sequence[dict]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(COLUMNS)
-    for r in rows:
-        w.writerow([_cell(r, c) for c in COLUMNS])
-    return buf.getvalue()
+    return rows_csv(rows, COLUMNS, _cell)
 
 
 def to_markdown(rows: Sequence[dict], cases: Sequence[HostileCase], wall_s: float | None = None) -> str:
@@ -939,7 +928,7 @@ def to_markdown(rows: Sequence[dict], cases: Sequence[HostileCase], wall_s: floa
              + (f"**{len(failed)} failed**." if failed else "all met their expectation."), "",
              "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in rows:
-        cells = [_short(_cell(r, c), MD_MESSAGE_CHARS) if c in ("message", "verdict") else _cell(r, c) for c in cols]
+        cells = [shorten(_cell(r, c), MD_MESSAGE_CHARS) if c in ("message", "verdict") else _cell(r, c) for c in cols]
         lines.append("| " + " | ".join(x.replace("|", "\\|") for x in cells) + " |")
     lines += ["", "| case | what is hostile | command (in the sandbox) |", "|---|---|---|"]
     for c in cases:

@@ -31,9 +31,7 @@ table: :data:`COLUMNS`) and ``stability.json`` (every row with its details and t
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
 import json
 import math
 import shutil
@@ -47,6 +45,7 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 
 from benchmark.cell import SYNTH_PROTOCOL, SYNTH_SEED
+from benchmark.report import rows_csv, shorten
 from nimbus.cli_util import pick_by_name
 from nimbus.errors import NimbusError
 
@@ -502,7 +501,7 @@ def format_progress(row: dict, i: int, n: int) -> str:
     if row["outcome"] == "finished":
         head += f", PSNR {_fmt(row['psnr'], '.2f')} SSIM {_fmt(row['ssim'], '.3f')} LPIPS {_fmt(row['lpips'], '.3f')}"
     else:
-        head += f" ({row['stage']}: {_short(row['message'], 100)})"
+        head += f" ({row['stage']}: {shorten(row['message'], 100)})"
     nan = f", NaN/inf in {', '.join(row['nan_where'])}" if row["nan_seen"] else ""
     return f"{head}{nan}, {row['seconds']:.1f} s -> {row['verdict']}"
 
@@ -513,11 +512,6 @@ def _fmt(v, spec: str) -> str:
     if isinstance(v, float) and math.isinf(v):
         return "inf"
     return format(v, spec)
-
-
-def _short(text: str, n: int) -> str:
-    text = " ".join(str(text).split())
-    return text if len(text) <= n else text[:n - 3] + "..."
 
 
 # --- tables -----------------------------------------------------------------------------------
@@ -533,12 +527,7 @@ def _cell(row: dict, col: str) -> str:
 
 
 def to_csv(rows: Iterable[dict]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(COLUMNS)
-    for r in rows:
-        w.writerow([_cell(r, c) for c in COLUMNS])
-    return buf.getvalue()
+    return rows_csv(rows, COLUMNS, _cell)
 
 
 def to_markdown(rows: Sequence[dict], cases: Sequence[StabilityCase], options: StabilityOptions,
@@ -563,7 +552,7 @@ def to_markdown(rows: Sequence[dict], cases: Sequence[StabilityCase], options: S
             if c == "nan_seen" and r["nan_seen"]:
                 text = f"yes ({_cell(r, 'nan_where')})"
             if c == "message":
-                text = _short(text, MD_MESSAGE_CHARS)
+                text = shorten(text, MD_MESSAGE_CHARS)
             cells.append(text.replace("|", "\\|"))
         lines.append("| " + " | ".join(cells) + " |")
     lines += ["", "| case | input | expected | what is extreme |", "|---|---|---|---|"]

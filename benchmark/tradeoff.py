@@ -44,7 +44,6 @@ the two strictly better, comparing the values as ``tradeoff.md`` prints them
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import io
 import math
@@ -56,6 +55,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from benchmark.cell import DEFAULT_PRESET, DEFAULT_SIZE, Cell
+from benchmark.report import rows_csv
 from nimbus.errors import NimbusError
 
 DEFAULT_SCENE = "garden"
@@ -344,12 +344,7 @@ def _number(v):
 
 def to_csv(rows: Sequence[dict]) -> str:
     """CSV with :data:`CSV_COLUMNS`, values unrounded, missing values empty."""
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(CSV_COLUMNS)
-    for r in rows:
-        w.writerow(["" if r[c] is None else r[c] for c in CSV_COLUMNS])
-    return buf.getvalue()
+    return rows_csv(rows, CSV_COLUMNS, lambda r, c: "" if r[c] is None else r[c])
 
 
 def to_markdown(rows: Sequence[dict], header: Sequence[str] = ()) -> str:
