@@ -1,4 +1,4 @@
-"""``nimbus-bench hostile``: faulty and malicious inputs through the real CLIs, in sandboxes (:mod:`benchmark.hostile`)."""
+"""``nimbus-bench hostile``: faulty and malicious inputs through the real CLIs, sandboxed (:mod:`benchmark.hostile`)."""
 
 from __future__ import annotations
 
