@@ -65,7 +65,7 @@ class Cell:
     weather : str
         Weather setting name (``H``, ``R+S``, ...; :mod:`weather_synth.settings`).
     method : str
-        Registered method name (:mod:`nimbus.train.methods`).
+        Registered method name (:mod:`nimbus.methods.registry`).
     preset : str
         Trainer preset (``tiny``, ``fast``, ``paper``).
     seed : int
@@ -251,7 +251,7 @@ def train_method(method_name: str, scene, config, out_dir: Path, *, seed: int, s
     Parameters
     ----------
     method_name : str
-        Registered method (:func:`nimbus.train.methods.get_method`).
+        Registered method (:func:`nimbus.methods.registry.get_method`).
     scene : nimbus.data.Scene
     config
         The method's config (:func:`make_config`).
@@ -276,33 +276,30 @@ def train_method(method_name: str, scene, config, out_dir: Path, *, seed: int, s
     """
     import torch
 
-    from nimbus.train.methods import get_method
+    from nimbus.train.runner import Runner
 
-    trainer = get_method(method_name).trainer()(scene, config, out_dir, seed=seed, scene_path=scene_path,
-                                                progress=progress,
-                                                device=torch.device(device) if device else None)
+    runner = Runner(method_name, scene, config, out_dir, seed=seed, scene_path=scene_path, progress=progress,
+                    device=torch.device(device) if device else None)
     if model_ready is not None:
-        model_ready(trainer)
-    return trainer.train(), trainer
+        model_ready(runner)
+    return runner.run(), runner
 
 
 def model_parameters(model) -> list:
-    """Every tensor the model optimises (Gaussians and, for NimbusGS, its medium)."""
-    return [p for g in model.all_param_groups() for p in g["params"]]
+    """Every tensor the model optimises (Gaussians and, for NimbusGS, its medium); ``model`` is a Runner."""
+    return [p for g in model.method.param_groups() for p in g["params"]]
 
 
-def medium_composition(method_name: str, model) -> dict:
-    """The medium and residual composition (name -> tensor) of the model's first training view.
+def medium_composition(model) -> dict:
+    """The extra layers (name -> tensor) of the model's render of its first training view.
 
-    Only methods that model a medium (NimbusGS and its variants) have one; for any other
-    method this is empty.
+    A method that models a medium (NimbusGS and its variants) returns them from
+    ``render(camera, view_index=...)`` (``transmission``, ``airlight``, ``residual``, ``degraded``);
+    for any other method this is empty.  ``model`` is a :class:`nimbus.train.runner.Runner`.
     """
-    from nimbus.nimbusgs.trainer import NimbusTrainer
-    from nimbus.train.methods import get_method
-
-    if not issubclass(get_method(method_name).trainer(), NimbusTrainer):
-        return {}
-    return model.compose(0, model.render(model.train_views[0]))
+    m = model.method
+    render = m.render(m.train_views[0].camera, view_index=0)
+    return {k: v for k, v in render.items() if k not in ("rgb", "depth", "alpha", "meta")}
 
 
 def score_run(run: Path, data: Path, results: dict, *, ssim_protocol: str, lpips_net, device: str | None) -> dict:
@@ -391,7 +388,7 @@ def _run_cell(cell: Cell, root: Path, options: CellOptions) -> dict:
     import torch
 
     from nimbus.data.io import load_scene
-    from nimbus.train.methods import get_method
+    from nimbus.methods.registry import get_method
     from nimbus.utils.fs import sha256_file
     from weather_synth.dataset import MANIFEST
 

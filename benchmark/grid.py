@@ -54,7 +54,7 @@ def resolve_methods(spec: str | None) -> tuple[list[str], list[str]]:
     ``spec`` None (or ``"default"``) is :data:`DEFAULT_METHODS`, keeping the registered ones;
     an explicit comma list must name registered methods only (NimbusError otherwise).
     """
-    from nimbus.train.methods import METHODS, get_method
+    from nimbus.methods.registry import METHODS, get_method
 
     if spec is None or spec.strip() == "default":
         names = [m for m in DEFAULT_METHODS if m in METHODS]
@@ -87,7 +87,7 @@ def build_cells(scenes: Sequence[str], weathers: Sequence[str], methods: Sequenc
         method's config does not have.
     """
     from nimbus.data.builtin import get_scene, get_size
-    from nimbus.train.methods import get_method
+    from nimbus.methods.registry import get_method
     from weather_synth.settings import parse_setting
 
     get_size(size)

@@ -32,7 +32,7 @@ from nimbus.data.images import read_image
 from nimbus.data.io import format_names, image_size, list_images
 from nimbus.errors import NimbusError
 from nimbus.metrics import LPIPS
-from nimbus.train.trainer import view_mask
+from nimbus.train.views import view_mask
 from nimbus.utils.fs import sha256_file
 
 FORMAT = "nimbus-bench-score/1"

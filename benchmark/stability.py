@@ -276,7 +276,7 @@ def log_nonfinite(run: Path) -> bool:
     return any(_nonfinite_in(json.loads(line), _PSNR_KEYS) for line in log.read_text().splitlines() if line.strip())
 
 
-def model_nonfinite(method_name: str, model) -> list[str]:
+def model_nonfinite(model) -> list[str]:
     """Where a trained model holds NaN / inf: ``parameters`` (every optimised tensor) and ``renders``
     (the test views and, for a method with a medium, the medium composition of a training view)."""
     import torch
@@ -287,14 +287,14 @@ def model_nonfinite(method_name: str, model) -> list[str]:
     with torch.no_grad():
         if any(not torch.isfinite(p).all() for p in model_parameters(model)):
             where.append("parameters")
-        if len(model.params) == 0:
+        if model.method.num_gaussians == 0:
             return where
         outputs = []
         views = model.scene.test_views or model.scene.train_views
         for view in views:
-            render = model.render(view)
-            outputs += [render["rgb"], render["depth"], render["alpha"], model.eval_image(view, render)]
-        outputs += list(medium_composition(method_name, model).values())
+            render = model.method.render(view.camera)
+            outputs += [render["rgb"], render["depth"], render["alpha"]]
+        outputs += list(medium_composition(model).values())
         if any(not torch.isfinite(t).all() for t in outputs):
             where.append("renders")
     return where
@@ -370,7 +370,7 @@ def run_method(case: StabilityCase, method_name: str, data: Path, run: Path, opt
     """
     from benchmark.cell import make_config, score_run, train_method
     from nimbus.data.io import load_scene
-    from nimbus.train.methods import get_method
+    from nimbus.methods.registry import get_method
 
     row = _row(case, method_name)
     built: list = []  # the model, once built: checked for NaN / inf even when its training fails
@@ -399,7 +399,7 @@ def run_method(case: StabilityCase, method_name: str, data: Path, run: Path, opt
         if (run / "results.json").is_file() and _nonfinite_in(_read_json(run / "results.json"), _PSNR_KEYS):
             row["nan_where"].append("results.json")
         if built:
-            row["nan_where"] += model_nonfinite(method_name, built[0])
+            row["nan_where"] += model_nonfinite(built[0])
     except Exception as e:  # a check that cannot run is a crash of the run it checks
         row.update(outcome="crash", stage="checks", message=f"{e.__class__.__name__}: {e}",
                    traceback=traceback.format_exc())

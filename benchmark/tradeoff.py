@@ -199,7 +199,7 @@ def build_sweep(base: Cell, knobs: Sequence[tuple[str, tuple[str, ...] | None]] 
         A knob the base method's config lacks, or a value its config rejects.
     """
     from benchmark.cell import make_config
-    from nimbus.train.methods import get_method
+    from nimbus.methods.registry import get_method
 
     method = get_method(base.method)
     base_ov = dict(base.overrides)
@@ -222,7 +222,7 @@ def build_sweep(base: Cell, knobs: Sequence[tuple[str, tuple[str, ...] | None]] 
 
 def _variation(base: Cell, base_config, name: str, value: str) -> Cell:
     from benchmark.cell import make_config
-    from nimbus.train.methods import get_method
+    from nimbus.methods.registry import get_method
 
     if name == "components" and value in METHOD_VALUES:
         method_name = METHOD_VALUES[value]

@@ -30,25 +30,3 @@ def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_dssim: float,
     gradient (see :func:`nimbus.metrics.masked_pair`).  The caller guarantees at least one valid pixel.
     """
     return (1.0 - lambda_dssim) * l1(pred, gt, mask) + lambda_dssim * (1.0 - mean_ssim(pred, gt, mask))
-
-
-# --- removed at merge ---------------------------------------------------------------------------
-# nimbus/train/trainer.py (evaluate and the training log) still imports ``psnr`` and ``ssim`` from
-# here; it is being rewritten into the Runner, which calls nimbus.metrics instead.  Until then these
-# are the former functions unchanged, and tests/test_metrics.py checks the replacements against them.
-ssim = mean_ssim  # removed at merge
-
-
-def psnr(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None) -> float:  # removed at merge
-    """PSNR in dB for images in [0, 1] (no quantisation; the benchmark's PSNR quantises to 8 bits first).
-
-    ``mask`` (bool ``(H, W)``): the mean squared error over the valid pixels only.
-    """
-    a, b = a.detach().float(), b.detach().float()
-    err = (a - b) ** 2
-    if mask is None:
-        mse = float(err.mean())
-    else:
-        w = mask.to(err.dtype)[..., None]
-        mse = float((err * w).sum() / (w.sum() * err.shape[-1]))
-    return float("inf") if mse == 0 else -10.0 * torch.log10(torch.tensor(mse)).item()

@@ -140,17 +140,24 @@ def test_rerun_skips_finished_cells(finished):
 
 def test_crash_mid_cell_resumes_without_corrupt_records(finished, tmp_path, monkeypatch):
     root = copy_data(finished[0], tmp_path)
-    from nimbus.train.trainer import GaussianTrainer
+    from nimbus.methods.gs3d import GaussianSplatting
+    from nimbus.train.runner import Runner
 
     first = cells()[0]
-    original = GaussianTrainer.after_step
+    original, original_train = GaussianSplatting.after_step, Runner.train
+    running = {}
+
+    def train(self):  # which run folder the method below trains into
+        running["out"] = self.out
+        return original_train(self)
 
     def crash(self, it):  # the process is killed during the second cell's training
-        if self.out.name.startswith(cells()[1].cell_id) and it == 3:
+        if running["out"].name.startswith(cells()[1].cell_id) and it == 3:
             raise KeyboardInterrupt
-        original(self, it)
+        return original(self, it)
 
-    monkeypatch.setattr(GaussianTrainer, "after_step", crash)
+    monkeypatch.setattr(Runner, "train", train)
+    monkeypatch.setattr(GaussianSplatting, "after_step", crash)
     with pytest.raises(KeyboardInterrupt):
         run_grid(cells(), root, InlineExecutor(), OPTIONS, progress=False, log=lambda s: None)
     store = ResultsStore(root)
@@ -160,7 +167,7 @@ def test_crash_mid_cell_resumes_without_corrupt_records(finished, tmp_path, monk
     with open(store.path, "ab") as f:  # and a torn record from a crash while writing
         f.write(b'{"cell_id": "' + cells()[1].cell_id.encode() + b'", "sta')
 
-    monkeypatch.setattr(GaussianTrainer, "after_step", original)
+    monkeypatch.setattr(GaussianSplatting, "after_step", original)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         outcome = run_grid(cells(), root, InlineExecutor(), OPTIONS, progress=False, log=lambda s: None)
@@ -172,12 +179,12 @@ def test_crash_mid_cell_resumes_without_corrupt_records(finished, tmp_path, monk
 
 def test_failed_cell_is_recorded_and_retried(finished, tmp_path, monkeypatch):
     root = copy_data(finished[0], tmp_path)
-    from nimbus.train.trainer import GaussianTrainer
+    from nimbus.train.runner import Runner
 
     def fail(self):
         raise NimbusError("every Gaussian was pruned")
 
-    monkeypatch.setattr(GaussianTrainer, "train", fail)
+    monkeypatch.setattr(Runner, "train", fail)
     outcome = run_grid(cells(["H"]), root, InlineExecutor(), OPTIONS, progress=False, log=lambda s: None)
     assert outcome.failed and outcome.failed[0]["error"] == "every Gaussian was pruned"
     assert ResultsStore(root).finished() == set()

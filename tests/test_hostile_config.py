@@ -21,7 +21,7 @@ from nimbus.nimbusgs.config import NimbusConfig
 from nimbus.nimbusgs.config import PRESETS as NIMBUS_PRESETS
 from nimbus.train.config import PRESETS as GS_PRESETS
 from nimbus.train.config import TrainConfig
-from nimbus.train.methods import METHODS, get_method
+from nimbus.methods.registry import METHODS, get_method
 from weather_synth.config import LIMITS as SYNTH_LIMITS
 from weather_synth.config import SynthConfig, apply_overrides, protocol_config
 

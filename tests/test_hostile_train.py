@@ -23,7 +23,9 @@ from nimbus.data.builtin import render_builtin
 from nimbus.errors import NimbusError
 from nimbus.train.config import TrainConfig
 from nimbus.train.ply import read_gaussian_ply, write_gaussian_ply
-from nimbus.train.trainer import CHECKPOINT, LAST_GOOD, GaussianTrainer, check_plain
+from nimbus.methods.gs3d import GaussianSplatting
+from nimbus.train.checkpoint import CHECKPOINT, LAST_GOOD, check_plain
+from nimbus.train.runner import Runner
 
 REPO = Path(__file__).resolve().parents[1]
 # A few iterations: every CLI run here takes about a second.
@@ -118,7 +120,7 @@ def test_resume_refuses_a_checkpoint_that_would_run_code(run, tmp_path, capsys, 
 
 def test_last_good_checkpoint_is_refused_the_same_way(scene, tmp_path):
     marker = tmp_path / "pwned"
-    t = GaussianTrainer(scene, _cfg(), tmp_path / "r", seed=0, progress=False)
+    t = Runner("3dgs", scene, _cfg(), tmp_path / "r", seed=0, progress=False)
     (tmp_path / "r").mkdir()
     _hostile_checkpoint(tmp_path / "r" / LAST_GOOD, marker, legacy=False)
     with pytest.raises(NimbusError, match="can run code"):
@@ -128,8 +130,8 @@ def test_last_good_checkpoint_is_refused_the_same_way(scene, tmp_path):
 
 def test_checkpoint_of_pickled_objects_is_refused_with_start_a_new_run(scene, tmp_path):
     """What an older Nimbus could have written (numpy values pickled as objects) is not loaded."""
-    t = GaussianTrainer(scene, _cfg(), tmp_path / "r", seed=0, progress=False)
-    state = t.state()
+    t = Runner("3dgs", scene, _cfg(), tmp_path / "r", seed=0, progress=False)
+    state = t.state_dict()
     state["order"] = np.array(state["order"])
     (tmp_path / "r").mkdir()
     torch.save(state, tmp_path / "r" / CHECKPOINT)
@@ -152,15 +154,12 @@ def test_corrupt_or_foreign_checkpoint_is_a_clear_error(run, capsys, content, me
 
 
 def test_every_checkpoint_loads_with_weights_only(scene, tmp_path):
-    import nimbus.nimbusgs.methods  # noqa: F401
     from nimbus.nimbusgs.config import NimbusConfig
-    from nimbus.nimbusgs.trainer import NimbusTrainer
 
     cfg = NimbusConfig(**{**dataclasses_fields(_cfg()), "m_init": 2, "refresh_interval": 2, "grid_resolution": 4,
                           "ray_samples": 4, "components": "csm,plm,ggs", "write_decomposition": False,
                           "airlight_hidden": 4})
-    t = NimbusTrainer(scene, cfg, tmp_path / "n", seed=0, progress=False)
-    t.train()
+    Runner("nimbus", scene, cfg, tmp_path / "n", seed=0, progress=False).run()
     state = torch.load(tmp_path / "n" / CHECKPOINT, weights_only=True)
     assert state["extra"]["medium"] is not None and state["extra"]["store"] is not None
     assert state["iteration"] == 6 and state["visible_steps"] > 0
@@ -173,11 +172,9 @@ def dataclasses_fields(cfg) -> dict:
 
 
 def test_a_method_that_checkpoints_an_object_fails_at_save_time(scene, tmp_path):
-    class Sloppy(GaussianTrainer):
-        def extra_state(self):
-            return {"score": np.float64(1.0)}
-
-    t = Sloppy(scene, _cfg(), tmp_path / "s", seed=0, progress=False)
+    t = Runner("3dgs", scene, _cfg(), tmp_path / "s", seed=0, progress=False)
+    state_dict = t.method.state_dict
+    t.method.state_dict = lambda: {**state_dict(), "extra": {"score": np.float64(1.0)}}
     with pytest.raises(TypeError, match=r"state\['extra'\]\['score'\] is a numpy.float64"):
         t.save_checkpoint()
     check_plain({"a": [1, 2.0, "x", None, True, (torch.zeros(1),)]})
@@ -223,48 +220,47 @@ def _poisoned(after_step):
     """``after_step`` that then, after the last step, turns one Gaussian's opacity NaN (the loss guard has
     nothing to see)."""
     def step(self, it):
-        after_step(self, it)
+        events = after_step(self, it)
         if it == self.cfg.iterations:
             with torch.no_grad():
                 self.params["opacity_logits"][0] = float("nan")
+        return events
     return step
 
 
-class _PoisonedAtEnd(GaussianTrainer):
-    after_step = _poisoned(GaussianTrainer.after_step)
-
-
-class _GoneAtEnd(GaussianTrainer):
-    """Moves every Gaussian out of every view after the last step: evaluation sees nothing."""
-
-    def after_step(self, it):
-        super().after_step(it)
+def _gone(after_step):
+    """``after_step`` that moves every Gaussian out of every view after the last step: evaluation sees nothing."""
+    def step(self, it):
+        events = after_step(self, it)
         if it == self.cfg.iterations:
             with torch.no_grad():
                 self.params["means"].add_(1e6)
+        return events
+    return step
 
 
-@pytest.mark.parametrize("cls, message", [(_PoisonedAtEnd, "non-finite parameters \\(opacity_logits\\)"),
-                                          (_GoneAtEnd, "no Gaussian is visible in any test view")])
-def test_garbage_model_raises_and_writes_no_results(scene, tmp_path, cls, message):
+@pytest.mark.parametrize("wrap, message", [(_poisoned, "non-finite parameters \\(opacity_logits\\)"),
+                                           (_gone, "no Gaussian is visible in any test view")])
+def test_garbage_model_raises_and_writes_no_results(scene, tmp_path, monkeypatch, wrap, message):
     out = tmp_path / "g"
+    monkeypatch.setattr(GaussianSplatting, "after_step", wrap(GaussianSplatting.after_step))
     with pytest.raises(NimbusError, match=message):
-        cls(scene, _cfg(), out, seed=0, progress=False).train()
+        Runner("3dgs", scene, _cfg(), out, seed=0, progress=False).run()
     for name in ("results.json", "point_cloud.ply", "renders/test"):
         assert not (out / name).exists(), name
 
 
 def test_never_visible_run_raises_and_writes_no_results(scene, tmp_path):
-    t = GaussianTrainer(scene, _cfg(iterations=3), tmp_path / "far", seed=0, progress=False)
+    t = Runner("3dgs", scene, _cfg(iterations=3), tmp_path / "far", seed=0, progress=False)
     with torch.no_grad():
-        t.params["means"].fill_(float("nan"))  # what --set lr_means_init=inf did after one step
+        t.method.params["means"].fill_(float("nan"))  # what --set lr_means_init=inf did after one step
     with pytest.raises(NimbusError, match="non-finite parameters"):
-        t.train()
+        t.run()
     assert not (tmp_path / "far" / "point_cloud.ply").exists()
 
 
 def test_cli_reports_a_garbage_model_as_one_error_line(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(GaussianTrainer, "after_step", _poisoned(GaussianTrainer.after_step))
+    monkeypatch.setattr(GaussianSplatting, "after_step", _poisoned(GaussianSplatting.after_step))
     out = tmp_path / "bad"
     code, err = cli(["builtin:garden:tiny", *FAST, "--out", out], capsys)
     assert_one_error(code, err, "non-finite parameters")
@@ -359,11 +355,11 @@ def test_downscale_with_a_builtin_scene_is_refused(tmp_path, capsys):
 
 # --- 5. leftovers and resumed logs --------------------------------------------------------------------------
 def test_a_run_that_fails_before_its_first_checkpoint_leaves_nothing(tmp_path, capsys, monkeypatch):
-    def fail(self, vi, render, gt):
+    def fail(self, step, vi, render, gt):
         raise NimbusError("the input is unusable")
 
     with monkeypatch.context() as m:
-        m.setattr(GaussianTrainer, "compute_loss", fail)
+        m.setattr(GaussianSplatting, "loss", fail)
         code, err = cli(["builtin:garden:tiny", *FAST, "--out", tmp_path / "new" / "deep" / "run"], capsys)
         assert_one_error(code, err, "unusable")
         assert not (tmp_path / "new").exists()  # every folder this run created is gone
@@ -392,23 +388,23 @@ class _Killed(BaseException):
 
 
 def test_resume_does_not_duplicate_log_lines(scene, tmp_path):
-    class KilledAt5(GaussianTrainer):
-        def after_step(self, it):
-            super().after_step(it)
-            if it == 5:
-                raise _Killed
+    def killed_at_5(self, it):
+        if it == 5:
+            raise _Killed
+        return []
 
     out = tmp_path / "r"
-    with pytest.raises(_Killed):
-        KilledAt5(scene, _cfg(), out, seed=0, progress=False).train()
+    with pytest.MonkeyPatch.context() as m, pytest.raises(_Killed):
+        m.setattr(GaussianSplatting, "after_step", killed_at_5)
+        Runner("3dgs", scene, _cfg(), out, seed=0, progress=False).run()
     log = out / "train_log.jsonl"
     assert max(json.loads(line)["iteration"] for line in log.read_text().splitlines()) == 4
     with log.open("a") as f:
         f.write('{"iteration": 5, "loss": 0.1')  # a line cut short by the kill
-    resumed = GaussianTrainer(scene, _cfg(), out, seed=0, progress=False)
+    resumed = Runner("3dgs", scene, _cfg(), out, seed=0, progress=False)
     resumed.load_checkpoint(out / CHECKPOINT)
     assert resumed.iteration == 3
-    resumed.train()
+    resumed.run()
     steps = [json.loads(line)["iteration"] for line in log.read_text().splitlines()
              if "loss" in json.loads(line)]
     assert steps == [1, 2, 3, 4, 5, 6]

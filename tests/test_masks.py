@@ -17,7 +17,8 @@ from nimbus.metrics import mean_ssim, peak_signal_noise_ratio, structural_simila
 from nimbus.render.gaussians import Gaussians
 from nimbus.render.rasterize import means2d_grad, rasterize
 from nimbus.train.config import TrainConfig, preset
-from nimbus.train.trainer import GaussianTrainer, downscale_mask, downscaled_view, view_mask
+from nimbus.train.runner import Runner
+from nimbus.train.views import downscale_mask, downscaled_view, view_mask
 from tests.conftest import make_tiny_scene
 
 H, W = 24, 32
@@ -121,22 +122,22 @@ def test_downscaled_mask_keeps_a_pixel_only_when_its_whole_block_is_valid():
 
 def test_views_without_masks_take_the_plain_loss(tmp_path):
     scene = make_tiny_scene(n_views=3)
-    t = GaussianTrainer(scene, TrainConfig(iterations=2), tmp_path / "r", progress=False)
-    assert t.train_masks == [None, None]
+    t = Runner("3dgs", scene, TrainConfig(iterations=2), tmp_path / "r", progress=False)
+    assert t.method.train_masks == [None, None]
 
 
 def test_bad_masks_are_clear_errors(tmp_path):
     scene = make_tiny_scene(n_views=3)
     wrong = scene.with_views([dataclasses.replace(scene.views[1], mask=np.ones((10, 10), bool)), *scene.views[::2]])
     with pytest.raises(NimbusError, match=r"mask of view 001.png is 10x10 but its camera is 32x24"):
-        GaussianTrainer(wrong, TrainConfig(iterations=2), tmp_path / "a", progress=False)
+        Runner("3dgs", wrong, TrainConfig(iterations=2), tmp_path / "a", progress=False)
     empty = scene.with_views([dataclasses.replace(scene.views[1], mask=np.zeros((24, 32), bool)), *scene.views[::2]])
     with pytest.raises(NimbusError, match="keeps no pixel.*invert it"):
-        GaussianTrainer(empty, TrainConfig(iterations=2), tmp_path / "b", progress=False)
+        Runner("3dgs", empty, TrainConfig(iterations=2), tmp_path / "b", progress=False)
     checker = np.indices((24, 32)).sum(0) % 2 == 0   # valid pixels, but no fully valid 2x2 block
     shrunk = scene.with_views([dataclasses.replace(scene.views[1], mask=checker), *scene.views[::2]])
     with pytest.raises(NimbusError, match="keeps no pixel once shrunk 2 times"):
-        GaussianTrainer(shrunk, TrainConfig(iterations=2, train_downscale=2), tmp_path / "c", progress=False)
+        Runner("3dgs", shrunk, TrainConfig(iterations=2, train_downscale=2), tmp_path / "c", progress=False)
     assert view_mask(scene.views[0]) is None
 
 
@@ -146,7 +147,7 @@ def test_trainer_scores_masked_test_views_over_valid_pixels(tmp_path):
     mask = np.zeros((24, 32), bool)
     mask[:, :20] = True
     scene = scene.with_views([dataclasses.replace(test, mask=mask), *scene.views[1:]])
-    res = GaussianTrainer(scene, TrainConfig(iterations=3, sh_degree=0), tmp_path / "r", progress=False).train()
+    res = Runner("3dgs", scene, TrainConfig(iterations=3, sh_degree=0), tmp_path / "r", progress=False).run()
     rec = res["per_view"]["000.png"]
     assert rec["valid_fraction"] == pytest.approx(20 / 32)
     assert res["masked"] is True and res["eval_masked_views"] == 1 and res["train_masked_views"] == 0
@@ -179,8 +180,8 @@ def test_masked_out_corruption_does_not_hurt_training(tmp_path):
 
     def run(kind):
         views = [v if v.name in s.test_names or kind == "clean" else occlude(v, kind == "masked") for v in s.views]
-        return GaussianTrainer(dataclasses.replace(s, views=tuple(views)), cfg, tmp_path / kind, seed=0,
-                               progress=False).train()["psnr"]
+        return Runner("3dgs", dataclasses.replace(s, views=tuple(views)), cfg, tmp_path / kind, seed=0,
+                      progress=False).run()["psnr"]
 
     clean, masked, unmasked = run("clean"), run("masked"), run("unmasked")
     assert masked > clean - 1.0, (clean, masked, unmasked)
@@ -269,7 +270,6 @@ def test_nimbus_bench_score_reads_the_scenes_masks(tmp_path):
 @pytest.mark.slow
 def test_nimbusgs_particle_evidence_ignores_masked_streaks(tmp_path):
     """Rain streaks only in the masked half of every training view must not switch on the particulate layer."""
-    from nimbus.nimbusgs.trainer import NimbusTrainer
     from tests.test_nimbusgs_train import _cfg, _degrade, _downscale
 
     s = _downscale(render_builtin("garden", size="tiny", seed=0))
@@ -290,7 +290,7 @@ def test_nimbusgs_particle_evidence_ignores_masked_streaks(tmp_path):
         return clean.with_views(views)
 
     cfg = _cfg(components="auto", iterations=41, m_init=40, write_decomposition=False)
-    picked = {k: NimbusTrainer(half_rain(k == "masked"), cfg, tmp_path / k, seed=0, progress=False).train()["components"]
+    picked = {k: Runner("nimbus", half_rain(k == "masked"), cfg, tmp_path / k, seed=0, progress=False).run()["components"]
               for k in ("masked", "unmasked")}
     assert "plm" in picked["unmasked"], picked
     assert "plm" not in picked["masked"], picked

@@ -155,28 +155,6 @@ def _torch_pair(seed: int, h: int = 24, w: int = 32) -> tuple[torch.Tensor, torc
     return pred, gt, mask
 
 
-# removed at merge, with nimbus.losses.psnr / ssim and nimbus.train.trainer.quantize_8bit: the check that
-# the replacements give the trainer's figures (results.json, the training log) bit for bit.
-@pytest.mark.parametrize("masked", [False, True])
-def test_torch_metrics_are_bit_identical_to_the_trainers_former_scoring(masked):
-    from nimbus.losses import psnr as old_psnr, ssim as old_ssim
-    from nimbus.train.trainer import quantize_8bit as old_quantize_8bit
-
-    for seed in range(3):
-        pred, gt, mask = _torch_pair(seed)
-        mask = mask if masked else None
-        p, g = quantize_8bit(pred), quantize_8bit(gt)
-        assert torch.equal(p, old_quantize_8bit(pred)) and torch.equal(g, old_quantize_8bit(gt))
-        # evaluate(): both quantised already
-        assert psnr(p, g, quantize=False, mask=mask) == old_psnr(p, g, mask)
-        assert ssim(p, g, quantize=False, mask=mask) == float(old_ssim(p, g, mask))
-        # the same through the metrics' own round trip
-        assert psnr(pred, gt, mask=mask) == old_psnr(p, g, mask)
-        assert ssim(pred, gt, mask=mask) == float(old_ssim(p, g, mask))
-        # the training log: no round trip
-        assert psnr(pred, gt, quantize=False, mask=mask) == old_psnr(pred, gt, mask)
-
-
 def test_torch_quantize_rounds_and_clips():
     x = torch.tensor([0.0, 1.49 / 255, 1.51 / 255, 1.2, -0.3])
     np.testing.assert_allclose((quantize_8bit(x) * 255).numpy(), [0, 1, 2, 255, 0], atol=1e-4)

@@ -433,15 +433,14 @@ def test_config_presets_variants_and_validation():
 
 
 def test_named_methods_are_registered_with_their_settings():
-    import nimbus.nimbusgs.methods  # noqa: F401  (registers the methods)
-    from nimbus.nimbusgs.trainer import NimbusTrainer
-    from nimbus.train.methods import get_method
+    from nimbus.methods.nimbusgs import NimbusGS
+    from nimbus.methods.registry import get_method
 
     assert get_method("nimbus").preset("tiny").components == "auto"
     assert get_method("nimbus-no-ggs").preset("tiny").forced_components == {"csm", "plm"}
     assert get_method("nimbus-uniform-extinction").preset("fast").extinction == "uniform"
     assert get_method("nimbus-minit-1k").preset("fast").m_init == 100
     assert get_method("nimbus-minit-15k").preset("paper").m_init == 15000
-    cls = get_method("nimbus-no-plm").trainer()
-    assert issubclass(cls, NimbusTrainer) and cls.method_name == "nimbus-no-plm"
-    assert get_method("nimbus").trainer() is NimbusTrainer
+    spec = get_method("nimbus-no-plm")
+    assert spec.load() is NimbusGS and spec.name == "nimbus-no-plm"
+    assert get_method("nimbus").load() is NimbusGS

@@ -1,4 +1,4 @@
-"""The NimbusGS trainer: outputs, component choice, GGS on densification, extremes, resume, quality."""
+"""NimbusGS through the runner: outputs, component choice, GGS on densification, extremes, resume, quality."""
 
 import dataclasses
 import json
@@ -13,9 +13,10 @@ from nimbus.data.scene import View
 from nimbus.errors import NimbusError
 from nimbus.nimbusgs.config import NimbusConfig
 from nimbus.nimbusgs.ggs import ggs_weights, ndc_grad_norm
-from nimbus.nimbusgs.trainer import NimbusTrainer
+from nimbus.methods.nimbusgs import NimbusGS
 from nimbus.render.rasterize import means2d_grad
-from nimbus.train.trainer import CHECKPOINT, GaussianTrainer
+from nimbus.train.checkpoint import CHECKPOINT
+from nimbus.train.runner import Runner
 from weather_synth.dataset import DegradedPointColours
 from weather_synth.depth import DepthConfig
 
@@ -84,24 +85,26 @@ def _cfg(**kw):
     return NimbusConfig(**base)
 
 
-def _finite_state(t: NimbusTrainer) -> bool:
-    tensors = list(t.params.tensors.values())
-    if t.field is not None:
-        tensors += list(t.field.parameters())
-    if t.airlight is not None:
-        tensors += list(t.airlight.parameters())
+def _nimbus(scene, cfg, out, seed=0) -> Runner:
+    return Runner("nimbus", scene, cfg, out, seed=seed, progress=False)
+
+
+def _finite_state(m: NimbusGS) -> bool:
+    tensors = list(m.params.tensors.values())
+    if m.medium is not None:  # extinction and airlight
+        tensors += [p for group in m.medium.param_groups() for p in group["params"]]
     return all(torch.isfinite(x).all() for x in tensors)
 
 
 def test_full_model_trains_and_writes_the_decomposition(hazy, tmp_path):
-    t = NimbusTrainer(hazy, _cfg(), tmp_path / "run", seed=0, progress=False)
-    res = t.train()
+    t = _nimbus(hazy, _cfg(), tmp_path / "run")
+    res = t.run()
     n, cam = len(hazy.train_views), hazy.train_views[0].camera
     nim = res["nimbus"]
     assert res["components"] == ["csm", "plm", "ggs"] and nim["mode"] == "forced"
     assert nim["residual_refreshes"] == 1 + (16 - 6) // 4  # after stage 1, then at 10 and 14
     assert nim["residual_bytes"] == n * cam.height * cam.width * 3
-    assert math.isfinite(res["psnr"]) and 0 < res["ssim"] <= 1 and _finite_state(t)
+    assert math.isfinite(res["psnr"]) and 0 < res["ssim"] <= 1 and _finite_state(t.method)
     strips = sorted((tmp_path / "run" / "decomposition").glob("*.png"))
     assert [p.stem for p in strips] == [v.stem for v in hazy.train_views]
     import cv2
@@ -117,13 +120,14 @@ def test_full_model_trains_and_writes_the_decomposition(hazy, tmp_path):
 
 
 def test_scored_render_is_the_clean_image(hazy, tmp_path):
-    t = NimbusTrainer(hazy, _cfg(iterations=8), tmp_path / "run", seed=0, progress=False)
-    view = hazy.train_views[0]
+    m = _nimbus(hazy, _cfg(iterations=8), tmp_path / "run").method
+    camera = m.train_views[0].camera
     with torch.no_grad():
-        render = t.render(view)
-        parts = t.compose(0, render)
-    assert torch.equal(t.eval_image(view, render), render["rgb"])
-    assert not torch.allclose(parts["con"], render["rgb"])  # the medium is applied in training only
+        render = m.render(camera)  # what the runner scores: render["rgb"]
+        parts = m.render(camera, view_index=0)
+    assert torch.equal(parts["rgb"], render["rgb"])  # the decomposition's extras leave the scored image alone
+    assert not torch.allclose(parts["degraded"], render["rgb"])  # the medium is applied in training only
+    assert set(parts) >= {"rgb", "depth", "alpha", "transmission", "airlight", "residual", "degraded"}
 
 
 def test_medium_is_the_same_with_the_compiled_and_the_torch_march(hazy, tmp_path, monkeypatch):
@@ -136,16 +140,18 @@ def test_medium_is_the_same_with_the_compiled_and_the_torch_march(hazy, tmp_path
     calls = []
     kernel = march_kernel.grid_optical_depth
     monkeypatch.setattr(march_kernel, "grid_optical_depth", lambda *a: calls.append(1) or kernel(*a))
-    t = NimbusTrainer(hazy, _cfg(), tmp_path / "run", seed=0, progress=False)
+    t = _nimbus(hazy, _cfg(), tmp_path / "run").method
     with torch.no_grad():
-        render = t.render(t.train_views[0])
+        render = t.render(t.train_views[0].camera)
     out = {}
+    medium = t.medium
     for backend in ("auto", "torch"):  # auto: the compiled march; torch: grid_sample
-        t.cfg = dataclasses.replace(t.cfg, backend=backend)
-        t.field.zero_grad(set_to_none=True)
-        T, P = t.medium(t.train_views[0], t._rays_for(0), render, t.descriptors[0])
+        medium.cfg = dataclasses.replace(medium.cfg, backend=backend)
+        medium.field.zero_grad(set_to_none=True)
+        T, P = medium.forward(t._rays_for(0), render, t.descriptors[0])
         (T.sum() + P.sum()).backward()
-        out[backend] = (T.detach(), P.detach(), t.field.features.grad.clone(), t.field.log_scale.grad.clone())
+        out[backend] = (T.detach(), P.detach(), medium.field.features.grad.clone(),
+                        medium.field.log_scale.grad.clone())
     assert len(calls) == 1  # the auto pass, not the torch one
     assert float(out["torch"][0].min()) < 0.99 and float(out["torch"][2].abs().max()) > 0
     for a, b in zip(out["auto"], out["torch"]):
@@ -156,43 +162,51 @@ def test_auto_picks_the_components_each_scene_needs(clean, hazy, rainy, tmp_path
     cfg = _cfg(components="auto", iterations=41, m_init=40, write_decomposition=False)
     picked = {}
     for name, scene in (("clean", clean), ("hazy", hazy), ("rainy", rainy)):
-        t = NimbusTrainer(scene, cfg, tmp_path / name, seed=0, progress=False)
-        if name == "clean":  # a haze-free scene never builds the grid
-            assert t.field is None and t.medium_opt is None
-        res = t.train()
+        t = _nimbus(scene, cfg, tmp_path / name)
+        if name == "clean":  # a haze-free scene never builds the grid, the airlight or their optimiser
+            assert t.method.medium is None
+        res = t.run()
         picked[name] = res["components"]
         nim = res["nimbus"]
         assert nim["mode"] == "auto" and nim["haze_evidence"]["dark_median"] >= 0
         assert nim["particle_evidence"] is not None
         if name == "clean":
-            assert t.store is None and nim["residual_refreshes"] == 0 and "csm_forward_s" not in nim["time_s"]
+            assert t.method.particulate is None and nim["residual_refreshes"] == 0 and "csm_forward_s" not in nim["time_s"]
             assert nim["estimated_time_saved_s"]["csm_ray_march_s"] > 0
             assert "plm_refresh_s" in nim["estimated_time_saved_s"]
     assert picked == {"clean": [], "hazy": ["csm", "ggs"], "rainy": ["plm", "ggs"]}
 
 
 def test_ggs_rescales_gradients_and_densification_statistics(hazy, tmp_path):
-    t = NimbusTrainer(hazy, _cfg(iterations=12, m_init=2), tmp_path / "run", seed=0, progress=False)
-    t.train()  # ends in stage 2
+    runner = _nimbus(hazy, _cfg(iterations=12, m_init=2), tmp_path / "run")
+    runner.run()  # ends in stage 2
+    t = runner.method
     vi, view = 0, t.train_views[0]
-    t.iteration = t.cfg.m_init + 1
-    render = t.render(view)
-    loss = t.compute_loss(vi, render, t.train_images[vi])
+    step = t.cfg.m_init + 1
+    render = t.render(view.camera)
+    gt = t.train_images[vi]
+    loss, pred = t.loss(step, vi, render, gt)
     loss.backward()
     meta = render["meta"]
-    t.density.accumulate(means2d_grad(meta), meta["radii"], view.camera.width, view.camera.height)
+    info = {"means2d_grad": means2d_grad(meta), "radii": meta["radii"], "visible": meta["visible"],
+            "width": view.camera.width, "height": view.camera.height}
     grads = {k: v.grad.clone() for k, v in t.params.tensors.items()}
-    accum = t.density.grad_accum.clone()
-    pred, gt = t._last
     w, _ = ggs_weights(meta["depths"], meta["radii"], meta["means2d"].detach(), (pred - gt).abs().sum(-1),
                        meta["visible"], t.ggs)
     assert not torch.allclose(w, torch.ones_like(w))
-    t.before_step(vi, render)
+    t.reweight_gradients(step, vi, render, pred, gt, info)
     torch.testing.assert_close(t.params["means"].grad, grads["means"] * w[:, None])
     torch.testing.assert_close(t.params["sh_dc"].grad, grads["sh_dc"] * w[:, None, None])
+    torch.testing.assert_close(info["grad2d_weight"], w)
+    # The strategy accumulates the weighted statistic (no densification or reset at this step).
+    strategy = dataclasses.replace(t.strategy, densify_from=10**9, opacity_reset_interval=10**9)
+    plain, weighted = strategy.initialize_state(), strategy.initialize_state()
+    unweighted = {k: v for k, v in info.items() if k != "grad2d_weight"}
+    assert strategy.step_post_backward(t.params, plain, step, unweighted, t.gen) == []
+    assert strategy.step_post_backward(t.params, weighted, step, info, t.gen) == []
     ndc = ndc_grad_norm(means2d_grad(meta), view.camera.width, view.camera.height)
     vis = meta["visible"]
-    torch.testing.assert_close(t.density.grad_accum[vis], accum[vis] + (w[vis] - 1) * ndc[vis])
+    torch.testing.assert_close(weighted["grad_accum"][vis], plain["grad_accum"][vis] + (w[vis] - 1) * ndc[vis])
 
 
 def _constant_scene(scene, value):
@@ -206,9 +220,10 @@ def test_extremes_stay_finite_or_stop_clearly(case, clean, tmp_path):
              "dense_haze": lambda: _degrade(clean, beta=3.0),
              "single_view": lambda: clean.with_views(clean.train_views[:1]).with_split([])}[case]()
     cfg = _cfg(iterations=10, m_init=4, init_transmission=0.01 if case == "dense_haze" else 0.0)
-    t = NimbusTrainer(scene, cfg, tmp_path / case, seed=0, progress=False)
+    runner = _nimbus(scene, cfg, tmp_path / case)
+    t = runner.method
     try:
-        res = t.train()
+        res = runner.run()
     except NimbusError as e:  # allowed: a clear stop (e.g. everything pruned on a blank input)
         assert "Gaussian" in str(e) or "loss" in str(e)
         return
@@ -216,31 +231,35 @@ def test_extremes_stay_finite_or_stop_clearly(case, clean, tmp_path):
     assert _finite_state(t)
     if case == "dense_haze":
         with torch.no_grad():
-            parts = t.compose(0, t.render(t.train_views[0]))
+            parts = t.compose(0, t.render(t.train_views[0].camera))
         assert float(parts["T"].median()) < 0.1 and torch.isfinite(parts["con"]).all()
 
 
 def test_every_gaussian_pruned_stops_cleanly(hazy, tmp_path):
     with pytest.raises(NimbusError, match="every Gaussian was pruned"):
-        NimbusTrainer(hazy, _cfg(prune_opacity=0.999), tmp_path / "empty", seed=0, progress=False).train()
+        _nimbus(hazy, _cfg(prune_opacity=0.999), tmp_path / "empty").run()
 
 
 def test_resume_continues_to_the_same_result(hazy, tmp_path):
     cfg = _cfg(write_decomposition=False)
-    full = NimbusTrainer(hazy, cfg, tmp_path / "full", seed=1, progress=False).train()
+    full = _nimbus(hazy, cfg, tmp_path / "full", seed=1).run()
 
-    class Interrupted(NimbusTrainer):
-        def after_step(self, it):
-            super().after_step(it)
-            if it == 9:  # Ctrl-C in stage 2 (the interrupt saves the state); a refresh is due at 10
-                raise KeyboardInterrupt
+    half = _nimbus(hazy, cfg, tmp_path / "half", seed=1)
+    step = half.method.train_iteration
 
+    def interrupted(it):
+        if it == 10:  # Ctrl-C in stage 2 after step 9 (the interrupt saves the state); a refresh is due at 10
+            raise KeyboardInterrupt
+        return step(it)
+
+    half.method.train_iteration = interrupted
     with pytest.raises(KeyboardInterrupt):
-        Interrupted(hazy, cfg, tmp_path / "half", seed=1, progress=False).train()
-    resumed = NimbusTrainer(hazy, cfg, tmp_path / "half", seed=1, progress=False)
+        half.run()
+    resumed = _nimbus(hazy, cfg, tmp_path / "half", seed=1)
     resumed.load_checkpoint(tmp_path / "half" / CHECKPOINT)
-    assert resumed.iteration == 9 and resumed.store is not None and resumed.field is not None
-    out = resumed.train()
+    m = resumed.method
+    assert resumed.iteration == 9 and m.particulate is not None and m.medium.field is not None
+    out = resumed.run()
     assert out["num_gaussians"] == full["num_gaussians"]
     assert out["psnr"] == pytest.approx(full["psnr"], abs=1e-4)
     assert out["nimbus"]["residual_refreshes"] == full["nimbus"]["residual_refreshes"]
@@ -250,18 +269,18 @@ def test_resume_continues_to_the_same_result(hazy, tmp_path):
                                      dict(residual_source="restored", airlight="constant"),
                                      dict(refresh_mode="lazy", dcp_stage2=True, lambda_tv=0.0)])
 def test_paper_variants_train(variant, hazy, tmp_path):
-    t = NimbusTrainer(hazy, _cfg(iterations=10, m_init=4, **variant), tmp_path / "v", seed=0, progress=False)
-    res = t.train()
+    runner = _nimbus(hazy, _cfg(iterations=10, m_init=4, **variant), tmp_path / "v")
+    res = runner.run()
+    t = runner.method
     assert math.isfinite(res["psnr"]) and _finite_state(t)
     if variant.get("extinction") == "gaussian":
-        assert "extinction_logit" in t.params.tensors and t.field is None
+        assert "extinction_logit" in t.params.tensors and t.medium.field is None
         assert t.params["extinction_logit"].shape[0] == len(t.params)
     if variant.get("refresh_mode") == "lazy":
         assert res["nimbus"]["lazy_refreshes"] > 0 and res["nimbus"]["residual_refreshes"] == 1
 
 
 def test_cli_trains_a_named_variant(tmp_path):
-    import nimbus.nimbusgs.methods  # noqa: F401  (registers the methods)
     from nimbus.cli.train import _main
 
     out = tmp_path / "cli"
@@ -274,7 +293,6 @@ def test_cli_trains_a_named_variant(tmp_path):
 
 
 def test_cli_components_flag_forces_components_and_rejects_misuse(tmp_path, capsys):
-    import nimbus.nimbusgs.methods  # noqa: F401  (registers the methods)
     from nimbus.cli.train import _main, main
 
     base = ["builtin:garden:tiny", "--preset", "tiny", "--set", "iterations=4", "--set", "m_init=2",
@@ -306,12 +324,12 @@ def test_nimbus_beats_3dgs_on_degraded_views(setting, hazy, rainy, tmp_path):
     scene = hazy if setting == "haze" else rainy
     cfg = _cfg(components="auto", iterations=300, m_init=120, refresh_interval=60, densify_from=100,
                densify_until=240, densify_interval=50, grid_resolution=16, ray_samples=16, write_decomposition=False)
-    nimbus = NimbusTrainer(scene, cfg, tmp_path / "nimbus", seed=0, progress=False).train()
+    nimbus = _nimbus(scene, cfg, tmp_path / "nimbus").run()
     gs_cfg = dict((f, getattr(cfg, f)) for f in ("iterations", "sh_degree", "sh_degree_interval", "densify_from",
                                                   "densify_until", "densify_interval", "opacity_reset_interval"))
     from nimbus.train.config import TrainConfig
 
-    gs = GaussianTrainer(scene, TrainConfig(**gs_cfg), tmp_path / "3dgs", seed=0, progress=False).train()
+    gs = Runner("3dgs", scene, TrainConfig(**gs_cfg), tmp_path / "3dgs", seed=0, progress=False).run()
     expected = ["csm", "ggs"] if setting == "haze" else ["plm", "ggs"]
     assert nimbus["components"] == expected
     # Measured margins: about +4.8 dB (haze) and +1.5 dB (streaks).
@@ -323,11 +341,11 @@ def test_initial_colours_are_dehazed_through_the_initial_medium(hazy, tmp_path):
     cameras that see the Gaussian (median), through the box."""
     from nimbus.render.sh import sh_to_rgb
 
-    plain = NimbusTrainer(hazy, _cfg(init_dehaze=False), tmp_path / "plain", seed=0, progress=False)
-    dehazed = NimbusTrainer(hazy, _cfg(init_dehaze=True), tmp_path / "dehazed", seed=0, progress=False)
+    plain = _nimbus(hazy, _cfg(init_dehaze=False), tmp_path / "plain").method
+    dehazed = _nimbus(hazy, _cfg(init_dehaze=True), tmp_path / "dehazed").method
     means = plain.params.tensors["means"].detach().double()
-    beta0 = math.log(2.0) * plain.initial_density_scale
-    lo, hi = (np.array(b) for b in (plain.box.lo, plain.box.hi))
+    beta0 = math.log(2.0) * plain.medium.initial_density_scale
+    lo, hi = (np.array(b) for b in (plain.medium.box.lo, plain.medium.box.hi))
     checked = 0
     for i in range(0, means.shape[0], max(1, means.shape[0] // 25)):
         p = means[i].numpy()

@@ -17,7 +17,7 @@ from benchmark.speed.sfm import render_photos
 from nimbus.data.align import pose_error
 from nimbus.data.io import load_scene
 from nimbus.train.config import preset
-from nimbus.train.trainer import GaussianTrainer
+from nimbus.train.runner import Runner
 from weather_synth.commands import sfm as sfm_command
 
 N_VIEWS, WIDTH, HEIGHT = 40, 240, 180
@@ -37,7 +37,7 @@ PSNR_MARGIN_DB = 1.0
 
 def _train_psnr(scene, out):
     config = dataclasses.replace(preset("tiny"), train_downscale=2)
-    return GaussianTrainer(scene, config, out, seed=0, progress=False).train()["psnr"]
+    return Runner("3dgs", scene, config, out, seed=0, progress=False).run()["psnr"]
 
 
 @pytest.mark.slow

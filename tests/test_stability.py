@@ -17,8 +17,8 @@ from benchmark.cell import make_config
 from benchmark.stability import CASES, COLUMNS, StabilityCase, get_cases
 from nimbus.cli_util import run_cli
 from nimbus.errors import NimbusError
-from nimbus.train.methods import METHODS, Method, get_method
-from nimbus.train.trainer import GaussianTrainer
+from nimbus.methods.gs3d import GaussianSplatting
+from nimbus.methods.registry import METHODS, MethodSpec, get_method
 
 FAST = ["--iterations", "12", "--lpips", "none"]
 
@@ -116,23 +116,20 @@ def test_report_runs_cases_and_writes_the_table(tmp_path, capsys):
     assert len(doc["rows"]) == len(rows) and doc["options"]["iterations"] == 12
 
 
-def _register(monkeypatch, name, trainer_cls):
-    from nimbus.train.config import preset
-
-    monkeypatch.setitem(METHODS, name, Method(name, "test double", lambda: trainer_cls, preset))
+def _register(monkeypatch, name, method_cls):
+    monkeypatch.setitem(METHODS, name, MethodSpec(name, "test double", f"{__name__}:{method_cls.__name__}"))
 
 
-class _Crashing(GaussianTrainer):
-    def train(self):
+class _Crashing(GaussianSplatting):
+    def train_iteration(self, step):
         raise ZeroDivisionError("a bug")
 
 
-class _NaNParams(GaussianTrainer):
-    def train(self):
-        results = super().train()
+class _NaNParams(GaussianSplatting):
+    def get_info(self):  # the last thing a run asks of its method: after every check, the results are written
         with torch.no_grad():
             self.params.tensors["opacity_logits"][0] = float("nan")
-        return results
+        return super().get_info()
 
 
 def test_crash_and_unflagged_nan_fail_the_report(tmp_path, monkeypatch, capsys):
@@ -154,8 +151,8 @@ def test_crash_and_unflagged_nan_fail_the_report(tmp_path, monkeypatch, capsys):
     assert "Traceback" in json.loads((out / "stability.json").read_text())["rows"][0]["traceback"]
 
 
-class _NaNThenClearError(GaussianTrainer):
-    def train(self):
+class _NaNThenClearError(GaussianSplatting):
+    def train_iteration(self, step):
         with torch.no_grad():
             self.params.tensors["opacity_logits"][0] = float("nan")
         raise NimbusError("the loss became NaN")

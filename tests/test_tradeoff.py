@@ -24,7 +24,7 @@ from nimbus.cli_util import run_cli
 from nimbus.data.images import read_image
 from nimbus.errors import NimbusError
 from nimbus.train.config import PRESETS
-from nimbus.train.trainer import GaussianTrainer
+from nimbus.train.runner import Runner
 
 SWEEP = ["tradeoff", "--method", "3dgs", "--weather", "H", "--set", "iterations=4", "--knob", "iterations=2,4",
          "--knob", "train_downscale=1,2", "--lpips", "none", "--quiet"]
@@ -200,13 +200,13 @@ def test_bad_knob_exits_2_with_one_error_line_and_no_output(tmp_path, capsys, kn
 def test_train_downscale_area_averages_training_views_and_keeps_test_views(make_scene, tmp_path):
     scene = make_scene(n_views=4, width=32, height=24)
     config = PRESETS["tiny"].with_overrides({"train_downscale": "2"})
-    t = GaussianTrainer(scene, config, tmp_path / "run", progress=False, device=torch.device("cpu"))
+    t = Runner("3dgs", scene, config, tmp_path / "run", progress=False, device=torch.device("cpu"))
     src, cam = scene.train_views[0], scene.train_views[0].camera
-    small = t.train_views[0]
+    small = t.method.train_views[0]
     assert small.camera.width == 16 and small.camera.height == 12
     np.testing.assert_allclose([small.camera.fx, small.camera.cx], [cam.fx / 2, cam.cx / 2])
     blocks = src.load_image().reshape(12, 2, 16, 2, 3).mean(axis=(1, 3))  # 2x2 box average
-    np.testing.assert_allclose(t.train_images[0].numpy(), blocks, atol=1e-6)
+    np.testing.assert_allclose(t.method.train_images[0].numpy(), blocks, atol=1e-6)
     assert t.scene.test_views[0].camera.width == 32
     with pytest.raises(NimbusError, match="train_downscale"):
         PRESETS["tiny"].with_overrides({"train_downscale": "0"})

@@ -1,5 +1,6 @@
-"""The 3DGS trainer: determinism, outputs, resume, guards, PLY layout and densification surgery."""
+"""3DGS through the runner: determinism, outputs, resume, guards, PLY layout and densification surgery."""
 
+import dataclasses
 import json
 import math
 
@@ -10,9 +11,11 @@ import torch
 from nimbus.data.builtin import render_builtin
 from nimbus.errors import NimbusError
 from nimbus.train.config import TrainConfig, preset
-from nimbus.train.densify import DensityController, GaussianParams
+from nimbus.train.checkpoint import CHECKPOINT, LAST_GOOD
+from nimbus.train.params import GaussianParams
 from nimbus.train.ply import ply_property_names, read_gaussian_ply
-from nimbus.train.trainer import CHECKPOINT, LAST_GOOD, GaussianTrainer
+from nimbus.train.runner import Runner
+from nimbus.train.strategy import DefaultStrategy
 
 
 @pytest.fixture(scope="module")
@@ -21,6 +24,10 @@ def scene():
     # Keep the test cheap: 6 training views, 2 test views.
     keep = s.train_views[:6] + s.test_views[:2]
     return s.with_views(keep)
+
+
+def _run(scene, cfg, out, seed=0):
+    return Runner("3dgs", scene, cfg, out, seed=seed, progress=False)
 
 
 def _cfg(**kw):
@@ -48,8 +55,8 @@ def test_presets_scale_the_schedule():
 
 
 def test_training_is_deterministic_and_writes_outputs(scene, tmp_path):
-    r1 = GaussianTrainer(scene, _cfg(), tmp_path / "a", seed=3, progress=False).train()
-    r2 = GaussianTrainer(scene, _cfg(), tmp_path / "b", seed=3, progress=False).train()
+    r1 = _run(scene, _cfg(), tmp_path / "a", seed=3).run()
+    r2 = _run(scene, _cfg(), tmp_path / "b", seed=3).run()
     assert r1["psnr"] == r2["psnr"] and r1["num_gaussians"] == r2["num_gaussians"]
     assert (tmp_path / "a" / "point_cloud.ply").read_bytes() == (tmp_path / "b" / "point_cloud.ply").read_bytes()
     for name in ("config.json", CHECKPOINT, "train_log.jsonl", "results.json", "point_cloud.ply"):
@@ -70,46 +77,51 @@ def test_training_is_deterministic_and_writes_outputs(scene, tmp_path):
 
 def test_training_improves_the_fit(scene, tmp_path):
     """Sixty iterations must fit the training views better than the initialisation does."""
-    t = GaussianTrainer(scene, _cfg(iterations=60, densify_until=40, opacity_reset_interval=1000), tmp_path / "r", seed=0, progress=False)
+    t = _run(scene, _cfg(iterations=60, densify_until=40, opacity_reset_interval=1000), tmp_path / "r", seed=0)
     with torch.no_grad():
-        before = np.mean([float((t.render(v)["rgb"] - img).abs().mean())
-                          for v, img in zip(t.train_views, t.train_images)])
-    t.train()
+        before = np.mean([float((t.method.render(v.camera)["rgb"] - img).abs().mean())
+                          for v, img in zip(t.method.train_views, t.method.train_images)])
+    t.run()
     with torch.no_grad():
-        after = np.mean([float((t.render(v)["rgb"] - img).abs().mean())
-                         for v, img in zip(t.train_views, t.train_images)])
+        after = np.mean([float((t.method.render(v.camera)["rgb"] - img).abs().mean())
+                         for v, img in zip(t.method.train_views, t.method.train_images)])
     assert after < 0.9 * before
 
 
 def test_resume_continues_to_the_same_result(scene, tmp_path):
-    full = GaussianTrainer(scene, _cfg(), tmp_path / "full", seed=1, progress=False).train()
+    full = _run(scene, _cfg(), tmp_path / "full", seed=1).run()
 
-    class Interrupted(GaussianTrainer):
-        def after_step(self, it):
-            super().after_step(it)
-            if it == 8:  # Ctrl-C between checkpoints: the interrupt itself saves the state
-                raise KeyboardInterrupt
+    half = _run(scene, _cfg(), tmp_path / "half", seed=1)
+    step = half.method.train_iteration
 
+    def interrupted(it):
+        if it == 9:  # Ctrl-C between checkpoints, after step 8: the interrupt itself saves the state
+            raise KeyboardInterrupt
+        return step(it)
+
+    half.method.train_iteration = interrupted
     with pytest.raises(KeyboardInterrupt):
-        Interrupted(scene, _cfg(), tmp_path / "half", seed=1, progress=False).train()
-    resumed = GaussianTrainer(scene, _cfg(), tmp_path / "half", seed=1, progress=False)
+        half.run()
+    resumed = _run(scene, _cfg(), tmp_path / "half", seed=1)
     resumed.load_checkpoint(tmp_path / "half" / CHECKPOINT)
     assert resumed.iteration == 8
-    out = resumed.train()
+    out = resumed.run()
     assert out["iterations"] == 12
     assert out["num_gaussians"] == full["num_gaussians"]
     assert out["psnr"] == pytest.approx(full["psnr"], abs=1e-4)
 
 
 def test_nan_loss_stops_with_clear_message_and_keeps_last_good(scene, tmp_path):
-    class Broken(GaussianTrainer):
-        def compute_loss(self, vi, render, gt):
-            loss = super().compute_loss(vi, render, gt)
-            return loss * float("nan") if self.iteration >= 4 else loss
+    t = _run(scene, _cfg(), tmp_path / "nan")
+    loss = t.method.loss
 
-    t = Broken(scene, _cfg(), tmp_path / "nan", seed=0, progress=False)
+    def broken(step, vi, render, gt):
+        value, pred = loss(step, vi, render, gt)
+        return (value * float("nan") if step >= 5 else value), pred
+
+    t.method.loss = broken
     with pytest.raises(NimbusError, match="iteration 5"):
-        t.train()
+        t.run()
     state = torch.load(tmp_path / "nan" / LAST_GOOD, weights_only=False)
     assert state["iteration"] == 4
     assert all(torch.isfinite(v).all() for v in state["params"]["tensors"].values())
@@ -118,24 +130,24 @@ def test_nan_loss_stops_with_clear_message_and_keeps_last_good(scene, tmp_path):
 def test_every_gaussian_pruned_stops_cleanly(scene, tmp_path):
     cfg = _cfg(prune_opacity=0.999)  # prunes everything at the first densification step
     with pytest.raises(NimbusError, match="every Gaussian was pruned"):
-        GaussianTrainer(scene, cfg, tmp_path / "empty", seed=0, progress=False).train()
+        _run(scene, cfg, tmp_path / "empty", seed=0).run()
 
 
 def test_view_with_no_visible_gaussian_does_not_crash(scene, tmp_path):
-    t = GaussianTrainer(scene, _cfg(iterations=3, densify_from=100), tmp_path / "far", seed=0, progress=False)
+    t = _run(scene, _cfg(iterations=3, densify_from=100), tmp_path / "far", seed=0)
     with torch.no_grad():
-        t.params["means"].add_(1e6)  # everything far outside every view
+        t.method.params["means"].add_(1e6)  # everything far outside every view
     # The blind steps run (and are logged); a run that never saw a Gaussian then ends in a clear error, not results.
     with pytest.raises(NimbusError, match="no Gaussian was visible"):
-        t.train()
+        t.run()
     log = (tmp_path / "far" / "train_log.jsonl").read_text()
     assert "no_visible_gaussians" in log
     assert not (tmp_path / "far" / "results.json").exists()
 
 
 def test_ply_has_standard_fields_and_round_trips(scene, tmp_path):
-    t = GaussianTrainer(scene, _cfg(iterations=2), tmp_path / "p", seed=0, progress=False)
-    t.train()
+    t = _run(scene, _cfg(iterations=2), tmp_path / "p", seed=0)
+    t.run()
     raw = (tmp_path / "p" / "point_cloud.ply").read_bytes()
     header = raw[: raw.index(b"end_header")].decode()
     names = [line.split()[2] for line in header.splitlines() if line.startswith("property")]
@@ -143,7 +155,7 @@ def test_ply_has_standard_fields_and_round_trips(scene, tmp_path):
     assert names[:3] == ["x", "y", "z"] and "f_dc_0" in names and "f_rest_8" in names and names[-1] == "rot_3"
     plyfile = pytest.importorskip("plyfile")  # an independent, standard PLY reader
     vertex = plyfile.PlyData.read(str(tmp_path / "p" / "point_cloud.ply"))["vertex"]
-    assert vertex.count == len(t.params)
+    assert vertex.count == len(t.method.params)
     np.testing.assert_allclose(vertex["f_dc_1"], t.gaussians().sh_dc[:, 0, 1].detach().numpy(), rtol=1e-6)
     np.testing.assert_allclose(vertex["rot_0"], t.gaussians().quats[:, 0].detach().numpy(), rtol=1e-6)
     back = read_gaussian_ply(tmp_path / "p" / "point_cloud.ply")
@@ -162,14 +174,17 @@ def test_densify_keeps_optimizer_state_aligned():
     sum(v.sum() for v in params.tensors.values()).backward()
     params.optimizer.step()
     cfg = TrainConfig(densify_grad_threshold=0.5, percent_dense=0.1, opacity_reset_interval=10**6)
-    dc = DensityController(cfg, extent=1.0, generator=torch.Generator().manual_seed(0))
+    strategy = DefaultStrategy.from_config(cfg, extent=1.0)
+    strategy = dataclasses.replace(strategy, densify_from=0, densify_interval=1)  # densify at step 1
+    state = strategy.initialize_state()
     grads = torch.tensor([[1.0, 0], [0, 0], [1.0, 0], [0, 0], [0, 0]]) / 32 * 2  # NDC norm 1 for 0 and 2
-    dc.accumulate(grads, torch.tensor([3, 3, 3, 0, 3]), 64, 48)
+    radii = torch.tensor([3, 3, 3, 0, 3])
+    info = {"means2d_grad": grads, "radii": radii, "visible": radii > 0, "width": 64, "height": 48}
     with torch.no_grad():
         params["log_scales"][2] = math.log(0.01)  # small: cloned; Gaussian 0 is big: split in two
     parent_scale = torch.exp(params["log_scales"][0].detach().clone())
-    counts = dc.densify_and_prune(params, it=1)
-    assert counts == {"cloned": 1, "split": 1, "pruned": 1}
+    events = strategy.step_post_backward(params, state, 1, info, torch.Generator().manual_seed(0))
+    assert events == [("densify", {"gaussians": 7, "cloned": 1, "split": 1, "pruned": 1})]
     assert len(params) == 5 - 1 + 1 + 2
     for group in params.optimizer.param_groups:
         p = group["params"][0]
@@ -190,9 +205,12 @@ def test_world_size_prune_is_angular_for_far_gaussians_when_relative(relative):
     params = GaussianParams(tensors, {k: 0.01 for k in tensors}, 1e-15)
     cfg = TrainConfig(prune_big_world=0.1, prune_world_relative=relative, opacity_reset_interval=1,
                       densify_grad_threshold=1e9)
-    dc = DensityController(cfg, extent=4.0, generator=torch.Generator().manual_seed(0), center=np.zeros(3))
-    dc.accumulate(torch.zeros(3, 2), torch.tensor([3, 3, 3]), 64, 48)
-    counts = dc.densify_and_prune(params, it=2)
+    strategy = dataclasses.replace(DefaultStrategy.from_config(cfg, extent=4.0, center=np.zeros(3)), densify_from=0,
+                                   densify_interval=1)  # densify at step 2, after the first reset
+    radii = torch.tensor([3, 3, 3])
+    info = {"means2d_grad": torch.zeros(3, 2), "radii": radii, "visible": radii > 0, "width": 64, "height": 48}
+    events = strategy.step_post_backward(params, strategy.initialize_state(), 2, info, torch.Generator().manual_seed(0))
+    counts = dict(events)["densify"]
     kept = params["means"].detach()
     if relative:  # limits: 0.4 m near the cameras, 5 m at 50 m
         assert counts["pruned"] == 2 and torch.equal(kept, means[1:2])
@@ -217,7 +235,7 @@ def test_a_degraded_dataset_is_scored_against_its_clean_images(scene, tmp_path):
         cv2.imwrite(str(root / "clean" / v.name), cv2.cvtColor((img * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
         cv2.imwrite(str(root / "images" / v.name),
                     cv2.cvtColor((img * 127).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
-    res = GaussianTrainer(load_scene(root), _cfg(), tmp_path / "run", seed=0, progress=False).train()
+    res = _run(load_scene(root), _cfg(), tmp_path / "run", seed=0).run()
     assert res["eval_reference"] == "clean"
     name = scene.test_views[0].name
     render = read_image(tmp_path / "run" / "renders" / "test" / (scene.test_views[0].stem + ".png"))
@@ -228,5 +246,5 @@ def test_a_degraded_dataset_is_scored_against_its_clean_images(scene, tmp_path):
             assert res["per_view"][name]["psnr"] == pytest.approx(value, abs=0.05)
         else:
             assert abs(res["per_view"][name]["psnr"] - value) > 1.0  # not scored against the degraded input
-    plain = GaussianTrainer(scene, _cfg(), tmp_path / "plain", seed=0, progress=False).train()
+    plain = _run(scene, _cfg(), tmp_path / "plain", seed=0).run()
     assert plain["eval_reference"] == "input"

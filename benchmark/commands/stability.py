@@ -34,7 +34,7 @@ def _run_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from nimbus.data.builtin import get_scene, get_size
-    from nimbus.train.methods import get_method
+    from nimbus.methods.registry import get_method
     from nimbus.utils.fs import check_output_dir
 
     cases = get_cases(args.cases)

@@ -5,14 +5,16 @@ Usage::
     python -m benchmark.bench_nimbusgs [--scene builtin:garden:small] [--preset fast] [--repeats 5]
                                        [--threads N] [--reference] [--checkpoint RUN/checkpoint.pt]
 
-Builds a :class:`~nimbus.nimbusgs.trainer.NimbusTrainer` on ``--scene`` (a scene folder,
+Builds a :class:`~nimbus.methods.nimbusgs.NimbusGS` (through :class:`~nimbus.train.runner.Runner`, so in
+its training frame) on ``--scene`` (a scene folder,
 e.g. a ``nimbus-synth degrade`` setting, or ``builtin:NAME:SIZE``) with the preset's
 settings and every component forced on (``components=csm,plm,ggs``), then times, on
 the first training view, each piece of an iteration: the rasterizer (forward +
 backward), the ray march (forward + backward; ``torch`` and the compiled ``cpp``
 backend, and with ``--reference`` the term-by-term :func:`march_reference`), the march
 interval, the airlight network, the photometric loss (L1 + SSIM), L_DCP, L_TV, GGS,
-the optimiser step, one whole stage-1 and stage-2 iteration, and the stage-boundary
+the optimiser step, one whole stage-1 and stage-2 ``train_iteration`` (densification off, so every
+repeat times the same model), and the stage-boundary
 and periodic PLM refresh (every training view rendered and composed, plus the
 view-consistency check).  Each row is the median of ``--repeats`` runs after one
 warm-up (the refresh and stage boundary: one run); ``cpu ms`` is the process CPU time
@@ -34,6 +36,7 @@ import time
 
 import torch
 
+from nimbus.nimbusgs.particulate import is_refresh_step
 from nimbus.nimbusgs.scattering import march, march_interval, march_reference
 from nimbus.render.rasterize import means2d_grad
 
@@ -58,60 +61,58 @@ def _load() -> str:
         return "n/a"
 
 
-def build_trainer(scene_spec: str, preset_name: str, out: str, checkpoint: str | None = None):
-    """A NimbusGS trainer with every component on; ``checkpoint``: a run's state (Gaussians and medium) loaded."""
+def build_method(scene_spec: str, preset_name: str, out: str, checkpoint: str | None = None):
+    """NimbusGS with every component on and densification off; ``checkpoint``: a run's state (Gaussians and
+    medium) loaded."""
     from pathlib import Path
 
-    from nimbus.cli.train import load_scene_arg
     from nimbus.nimbusgs.config import preset
-    from nimbus.nimbusgs.trainer import NimbusTrainer
+    from nimbus.train.run_folder import load_scene_arg
+    from nimbus.train.runner import Runner
 
     config = dataclasses.replace(preset(preset_name), components="csm,plm,ggs", write_decomposition=False)
-    tr = NimbusTrainer(load_scene_arg(scene_spec), config, out, seed=0, progress=False)
+    runner = Runner("nimbus", load_scene_arg(scene_spec), config, out, seed=0, progress=False)
+    tr = runner.method
     if checkpoint:
-        tr.load_checkpoint(Path(checkpoint))
+        runner.load_checkpoint(Path(checkpoint))
         if not tr.use_csm:
             raise SystemExit("the checkpoint's run has no medium (CSM off): nothing to time")
         tr.use_plm = tr.use_ggs = True  # time every component whatever the run chose
-        tr.store = None
+        tr.particulate = None
+    # Repeats of one step must time the same model: no densification, pruning or opacity reset.
+    tr.strategy = dataclasses.replace(tr.strategy, densify_from=10**9, opacity_reset_interval=10**9)
     return tr
 
 
 def train_step(tr, vi: int, it: int) -> None:
-    """One iteration of the training loop on view ``vi`` as iteration ``it`` (the loop body without logging)."""
-    tr.iteration = it - 1
-    view, gt = tr.train_views[vi], tr.train_images[vi]
-    render = tr.render(view, tr.active_sh_degree(it))
-    loss = tr.compute_loss(vi, render, gt)
-    loss.backward()
-    meta = render["meta"]
-    grad2d = means2d_grad(meta)
-    if grad2d is not None:
-        tr.density.accumulate(grad2d, meta["radii"], view.camera.width, view.camera.height)
-    tr.before_step(vi, render)
-    tr.optimizer_step()
+    """The method's whole ``train_iteration`` on view ``vi`` as step ``it``."""
+    tr._order = [vi]  # the view the step takes next
+    tr.train_iteration(it)
 
 
 def component_rows(tr, repeats: int, reference: bool) -> list[tuple[str, float, float]]:
     c = tr.cfg
     vi, it1, it2 = 0, max(c.m_init // 2, 1), max(c.m_init + 1, c.iterations - 1)  # it2: full SH degree
+    while it2 > c.m_init + 1 and is_refresh_step(it2, c.m_init, c.refresh_interval):
+        it2 -= 1  # a step without the periodic refresh (timed on its own below)
     view, gt = tr.train_views[vi], tr.train_images[vi]
     rays = tr._rays_for(vi)
-    lo, hi = tr._box_tensors
+    medium = tr.medium
+    lo, hi = medium.box_tensors
     rows = []
 
     def add(name, fn, n=repeats, warmup=1):
         rows.append((name, *_time(fn, n, warmup)))
         tr.params.optimizer.zero_grad(set_to_none=True)
-        tr.medium_opt.zero_grad(set_to_none=True)
+        medium.optimizer.zero_grad(set_to_none=True)
 
     def render_fb():
-        r = tr.render(view, c.sh_degree)
+        r = tr.render(view.camera, c.sh_degree)
         (r["rgb"].sum() + r["depth"].sum()).backward()
 
     add("render fwd+bwd (rasterizer)", render_fb)
     with torch.no_grad():
-        r = tr.render(view, c.sh_degree)
+        r = tr.render(view.camera, c.sh_degree)
     depth, alpha = r["depth"], r["alpha"]
     ts, te = march_interval(rays, lo, hi, depth, alpha, c.near_plane, c.surface_alpha_min)
     weights = torch.randn(2, ts.shape[0], generator=torch.Generator().manual_seed(0))
@@ -124,21 +125,21 @@ def component_rows(tr, repeats: int, reference: bool) -> list[tuple[str, float, 
 
     K = c.ray_samples
     if reference:
-        add("march fwd+bwd (reference)", march_fb(lambda: march_reference(tr.field, rays.origin, rays.dirs, ts, te, K)))
-    add("march fwd+bwd (torch)", march_fb(lambda: march(tr.field, rays.origin, rays.dirs, ts, te, K, "torch")))
+        add("march fwd+bwd (reference)", march_fb(lambda: march_reference(medium.field, rays.origin, rays.dirs, ts, te, K)))
+    add("march fwd+bwd (torch)", march_fb(lambda: march(medium.field, rays.origin, rays.dirs, ts, te, K, "torch")))
     try:
-        add("march fwd+bwd (cpp)", march_fb(lambda: march(tr.field, rays.origin, rays.dirs, ts, te, K, "cpp")))
+        add("march fwd+bwd (cpp)", march_fb(lambda: march(medium.field, rays.origin, rays.dirs, ts, te, K, "cpp")))
     except Exception as exc:  # noqa: BLE001 - report and go on
         print(f"compiled march unavailable: {exc}")
     add("march interval", lambda: march_interval(rays, lo, hi, depth, alpha, c.near_plane, c.surface_alpha_min))
     transmission = torch.rand(ts.shape[0])
-    add("airlight fwd+bwd", lambda: tr.airlight(rays.dirs, transmission, tr.descriptors[vi]).sum().backward())
+    add("airlight fwd+bwd", lambda: medium.airlight(rays.dirs, transmission, tr.descriptors[vi]).sum().backward())
     pred = gt.clone().mul_(0.9).requires_grad_()
     from nimbus.nimbusgs.losses import dcp_loss, stage_loss
 
     add("L1 + SSIM fwd+bwd", lambda: stage_loss(pred, gt, c.lambda_dssim).backward())
     add("L_DCP fwd+bwd", lambda: dcp_loss(pred, c.dcp_patch, c.dcp_temperature, c.dcp_form).backward())
-    add("L_TV fwd+bwd", lambda: tr.field.tv().backward())
+    add("L_TV fwd+bwd", lambda: medium.field.tv().backward())
 
     def step_at(it):
         return lambda: train_step(tr, vi, it)
@@ -151,12 +152,17 @@ def component_rows(tr, repeats: int, reference: bool) -> list[tuple[str, float, 
                  1e3 * (time.process_time() - c0)))
     add(f"stage-2 iteration (all of it, it {it2})", step_at(it2))
     # GGS and the optimiser step alone, after a stage-2 forward/backward.
-    r2 = tr.render(view, c.sh_degree)
-    tr.compute_loss(vi, r2, gt).backward()
-    rows.append(("GGS (before_step)", *_time(lambda: tr.before_step(vi, r2), repeats)))
+    r2 = tr.render(view.camera, c.sh_degree)
+    loss, pred = tr.loss(it2, vi, r2, gt)
+    loss.backward()
+    meta = r2["meta"]
+    info = {"means2d_grad": means2d_grad(meta), "radii": meta["radii"], "visible": meta["visible"],
+            "width": view.camera.width, "height": view.camera.height}
+    rows.append(("GGS (reweight_gradients)",
+                 *_time(lambda: tr.reweight_gradients(it2, vi, r2, pred, gt, info), repeats)))
 
     def opt_step():
-        for group in tr.all_param_groups():
+        for group in tr.param_groups():
             for p in group["params"]:
                 if p.grad is None:
                     p.grad = torch.zeros_like(p)
@@ -183,7 +189,7 @@ def main(argv=None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     with tempfile.TemporaryDirectory(prefix="bench_nimbusgs_") as out:
-        tr = build_trainer(args.scene, args.preset, out, args.checkpoint)
+        tr = build_method(args.scene, args.preset, out, args.checkpoint)
         cam = tr.train_views[0].camera
         c = tr.cfg
         print(f"scene {args.scene}, preset {args.preset}: {len(tr.train_views)} training views {cam.width}x"

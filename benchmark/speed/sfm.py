@@ -78,11 +78,11 @@ def case_config(case: str, true_focal: float, threads: int, seed: int) -> SfmCon
 
 def train_psnr(scene: Scene, preset: str, out: Path, seed: int) -> float:
     """Test-view PSNR of 3DGS (``preset``) trained on ``scene``."""
-    from nimbus.train.methods import get_method
+    from nimbus.methods.registry import get_method
+    from nimbus.train.runner import Runner
 
-    method = get_method("3dgs")
-    trainer = method.trainer()(scene, method.preset(preset), out, seed=seed, progress=False)
-    return float(trainer.train()["psnr"])
+    runner = Runner("3dgs", scene, get_method("3dgs").preset(preset), out, seed=seed, progress=False)
+    return float(runner.run()["psnr"])
 
 
 def run_case(exact: Scene, photos: Path, work: Path, case: str, args) -> dict:

@@ -12,7 +12,7 @@ file stem                   paper table                 rows x columns
 ==========================  ==========================  ===============================================
 
 Which of our methods fills which paper row is the data in :data:`ABLATIONS` (method
-names from :mod:`nimbus.nimbusgs.methods`); the paper's "Ours" is ``nimbus-full``,
+names from :mod:`nimbus.methods.registry`); the paper's "Ours" is ``nimbus-full``,
 the configuration every ablation variant changes one thing of.  Values are means over
 the seeds of a cell; an ``Average`` is the mean over the scenes the block's rows were
 run on, and is left empty (never zero) for a row that misses one of them.  A table is

@@ -10,56 +10,16 @@ Examples::
 
 from __future__ import annotations
 
-import json
-import os
 import shutil
 import sys
 from pathlib import Path
 from typing import Sequence
 
-from nimbus.cli_util import MAX_SEED, ArgumentParser, HelpFormatter, check_seed, run_cli, seed_arg
+from nimbus.cli_util import MAX_SEED, ArgumentParser, HelpFormatter, run_cli, seed_arg
 from nimbus.errors import NimbusError
+from nimbus.methods.registry import METHODS, get_method
 from nimbus.train.config import parse_set_args
-from nimbus.train.methods import METHODS, get_method
-
-BUILTIN_PREFIX = "builtin:"
-#: What ``scene_load_args`` in a run's config.json may hold (the keyword arguments of :func:`load_scene_arg`).
-SCENE_LOAD_ARGS = ("downscale",)
-
-
-def load_scene_arg(spec: str, downscale: int = 1):
-    """A scene from a path, or ``builtin:NAME[:SIZE]`` rendered in memory (default size tiny).
-
-    A built-in scene has no ``images_N`` copies, so ``downscale`` other than 1 is refused for it
-    (pick a smaller SIZE, or ``--set train_downscale=N``) rather than silently ignored.
-    """
-    check_downscale(spec, downscale)
-    if spec.startswith(BUILTIN_PREFIX):
-        from nimbus.data.builtin import render_builtin
-
-        parts = spec[len(BUILTIN_PREFIX):].split(":")
-        name, size = parts[0], (parts[1] if len(parts) > 1 else "tiny")
-        return render_builtin(name, size=size, seed=0)
-    from nimbus.data.io import load_scene
-
-    return load_scene(spec, downscale=downscale)
-
-
-def check_downscale(spec: str, downscale: int) -> None:
-    """Refuse a ``downscale`` that :func:`load_scene_arg` could not honour for ``spec``."""
-    if spec.startswith(BUILTIN_PREFIX) and downscale != 1:
-        raise NimbusError(f"--downscale {downscale} reads the images_{downscale}/ copies of a scene folder; "
-                          f"built-in scenes have none. Pick a smaller size ({BUILTIN_PREFIX}NAME:tiny) or "
-                          "train on shrunk images with --set train_downscale=N")
-
-
-def scene_input_folder(spec: str) -> Path | None:
-    """The folder a scene is read from (None for a built-in scene): what ``--out`` must stay apart from."""
-    if spec.startswith(BUILTIN_PREFIX):
-        return None
-    path = Path(spec)
-    return path.parent if path.is_file() else path  # a transforms*.json file reads its folder
-
+from nimbus.train.run_folder import check_downscale, load_scene_arg, scene_input_folder
 
 def parse_device(spec: str | None):
     """``--device`` as a torch device Nimbus can train on (None: the default), else NimbusError."""
@@ -85,35 +45,6 @@ def parse_device(spec: str | None):
     raise NimbusError(f"--device {spec}: Nimbus trains on cpu or cuda[:N], not {device.type}")
 
 
-def read_run_config(run: Path) -> dict:
-    """The checked ``config.json`` of run folder ``run``: method, scene, seed, config and scene_load_args.
-
-    Raises NimbusError naming the file for anything that is not what :meth:`GaussianTrainer.write_config` writes.
-    """
-    cfg_file = run / "config.json"
-    fix = "it is not a config.json written by nimbus-train; restore it or start a new run with --out"
-    try:
-        saved = json.loads(cfg_file.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as e:
-        raise NimbusError(f"cannot read {cfg_file} ({e.__class__.__name__}); check its permissions") from None
-    except (ValueError, RecursionError) as e:
-        raise NimbusError(f"{cfg_file} is not valid JSON ({str(e)[:120]}); {fix}") from None
-    if not isinstance(saved, dict):
-        raise NimbusError(f"{cfg_file} holds a {type(saved).__name__}, not an object; {fix}")
-    for key, kind in (("method", str), ("scene", str), ("seed", int), ("config", dict)):
-        if key not in saved:
-            raise NimbusError(f"{cfg_file} has no {key!r}; {fix}")
-        if not isinstance(saved[key], kind) or isinstance(saved[key], bool):
-            raise NimbusError(f"{cfg_file}: {key!r} is {saved[key]!r}, expected a {kind.__name__}; {fix}")
-    check_seed(saved["seed"], f"{cfg_file}: 'seed'")
-    load_args = saved.get("scene_load_args") or {}
-    if (not isinstance(load_args, dict) or not set(load_args) <= set(SCENE_LOAD_ARGS)
-            or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in load_args.values())):
-        raise NimbusError(f"{cfg_file}: 'scene_load_args' is {load_args!r}, expected {{\"downscale\": N}} with "
-                          f"N >= 1 (or nothing); {fix}")
-    return {**saved, "scene_load_args": load_args}
-
-
 def build_parser() -> ArgumentParser:
     p = ArgumentParser(prog="nimbus-train", description=__doc__, formatter_class=HelpFormatter)
     p.add_argument("scene", nargs="?", help="scene folder (COLMAP or transforms.json), or builtin:NAME[:SIZE]")
@@ -135,32 +66,15 @@ def build_parser() -> ArgumentParser:
 
 
 def _resume(args, device):
-    from nimbus.train.trainer import CHECKPOINT
+    from nimbus.train.runner import Runner
 
-    run = Path(args.resume)
-    cfg_file, ckpt = run / "config.json", run / CHECKPOINT
-    if not cfg_file.is_file() or not ckpt.is_file():
-        raise NimbusError(f"{run} is not a resumable run (needs config.json and {CHECKPOINT})")
-    if not os.access(run, os.W_OK | os.X_OK):
-        raise NimbusError(f"{run} cannot be written (read-only or not ours); a resumed run writes its checkpoint "
-                          "and outputs there. Fix its permissions or copy the run folder somewhere writable")
-    saved = read_run_config(run)
-    method = get_method(saved["method"])
-    config_cls = type(method.preset("tiny"))
-    try:
-        config = config_cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved["config"].items()})
-    except (TypeError, ValueError, NimbusError) as e:
-        raise NimbusError(f"{cfg_file}: its 'config' does not fit method {saved['method']!r} ({e}); restore the "
-                          "file or start a new run with --out") from None
-    scene = load_scene_arg(saved["scene"], **saved["scene_load_args"])
-    trainer = method.trainer()(scene, config, run, seed=saved["seed"], scene_path=saved["scene"],
-                               progress=not args.quiet, device=device, scene_load_args=saved["scene_load_args"])
-    trainer.load_checkpoint(ckpt)
-    print(f"resuming {run} at iteration {trainer.iteration}/{config.iterations}", file=sys.stderr)
-    return trainer.train(), trainer
+    runner = Runner.resume(args.resume, progress=not args.quiet, device=device)
+    print(f"resuming {runner.out} at iteration {runner.iteration}/{runner.cfg.iterations}", file=sys.stderr)
+    return runner.run(), runner
 
 
 def _new_run(args, device):
+    from nimbus.train.runner import Runner
     from nimbus.utils.fs import check_output_dir
 
     if not args.scene or not args.out:
@@ -192,9 +106,9 @@ def _new_run(args, device):
     created = next((p for p in reversed([out, *out.parents]) if not p.exists()), None)
     load_args = {"downscale": args.downscale} if args.downscale != 1 else {}
     try:
-        trainer = method.trainer()(scene, config, out, seed=args.seed, scene_path=args.scene,
-                                   progress=not args.quiet, device=device, scene_load_args=load_args)
-        return trainer.train(), trainer
+        runner = Runner(args.method, scene, config, out, seed=args.seed, scene_path=args.scene,
+                        scene_load_args=load_args, progress=not args.quiet, device=device)
+        return runner.run(), runner
     except BaseException:
         _remove_unresumable(out, created)
         raise
@@ -203,7 +117,7 @@ def _new_run(args, device):
 def _remove_unresumable(out: Path, created: Path | None) -> None:
     """After a failed new run: remove what it wrote unless a checkpoint was saved (kept for --resume and for
     the last-good state the error names), so a plain retry is not refused as "not empty"."""
-    from nimbus.train.trainer import CHECKPOINT, LAST_GOOD
+    from nimbus.train.checkpoint import CHECKPOINT, LAST_GOOD
 
     if (out / CHECKPOINT).exists() or (out / LAST_GOOD).exists():
         return
@@ -233,11 +147,11 @@ def _main(argv: Sequence[str] | None) -> int:
                           "or start a new run with --out")
     if args.downscale < 1:
         raise NimbusError(f"--downscale must be a positive integer (1, 2, 4, 8), got {args.downscale}")
-    results, trainer = _resume(args, device) if args.resume else _new_run(args, device)
+    results, runner = _resume(args, device) if args.resume else _new_run(args, device)
     against = " (against clean/)" if results.get("eval_reference") == "clean" else ""
     print(f"{results['method']}: {results['eval_split']} PSNR{against} {results['psnr']:.2f} dB, "
           f"SSIM {results['ssim']:.4f}, {results['num_gaussians']} Gaussians, "
-          f"{results['train_time_s']:.1f} s -> {trainer.out}")
+          f"{results['train_time_s']:.1f} s -> {runner.out}")
     return 0
 
 

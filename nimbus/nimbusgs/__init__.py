@@ -4,6 +4,7 @@ Modules: :mod:`~nimbus.nimbusgs.config` (settings and presets), :mod:`~nimbus.ni
 (extinction field and ray march), :mod:`~nimbus.nimbusgs.airlight`, :mod:`~nimbus.nimbusgs.particulate`
 (residual store), :mod:`~nimbus.nimbusgs.ggs` (gradient scaling), :mod:`~nimbus.nimbusgs.losses`,
 :mod:`~nimbus.nimbusgs.auto` (component selection), :mod:`~nimbus.nimbusgs.restore` (classical 2D
-restoration for an ablation), :mod:`~nimbus.nimbusgs.trainer` (:class:`NimbusTrainer`) and
-:mod:`~nimbus.nimbusgs.methods` (the named methods for ``nimbus-train --method``).
+restoration for an ablation) and :mod:`~nimbus.nimbusgs.degradation` (the degradation model: medium,
+composite, residuals).  The method itself, built on these, is :mod:`nimbus.methods.nimbusgs`; its named
+variants are in :mod:`nimbus.methods.registry`.
 """

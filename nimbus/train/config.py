@@ -31,7 +31,7 @@ class TrainConfig:
     NimbusGS's ``dcp_patch`` and ``ggs_r0``) then count pixels of the shrunk images.
 
     Lengths are in units of the scene extent: the trainer works in a frame centred on the
-    mean camera centre with extent 1 (:class:`nimbus.train.trainer.SceneFrame`, as gsplat and
+    mean camera centre with extent 1 (:class:`nimbus.train.frame.SceneFrame`, as gsplat and
     nerfstudio normalise), so ``near_plane`` 0.01 is 1 % of the extent whatever the units of
     the reconstruction (Inria's 0.01 is in COLMAP units, which are arbitrary).
 

@@ -41,7 +41,7 @@ from nimbus.data import Scene
 from nimbus.errors import NimbusError
 from nimbus.render.rasterize import rasterize
 from nimbus.train.config import TrainConfig, preset
-from nimbus.train.trainer import CHECKPOINT, GaussianTrainer
+from nimbus.train.runner import Runner
 from nimbus.utils.fs import atomic_write_bytes
 
 #: Part of the cache key: bump when the fit or the depth render changes what a cached file holds.
@@ -115,32 +115,6 @@ class ReconDepth:
     info: dict
 
 
-class _DepthFitTrainer(GaussianTrainer):
-    """3DGS whose run ends at the fitted Gaussians: no evaluation, renders, PLY or checkpoints.
-
-    A cache fit is never resumed, so the checkpoints and the scoring of the
-    normal run would only cost time; the loop, densification and guards are the
-    trainer's own.
-    """
-
-    method_name = "recon-depth"
-
-    def __init__(self, *args, on_log: Callable[[dict], None] | None = None, **kwargs) -> None:
-        self._on_log = on_log
-        super().__init__(*args, **kwargs)
-
-    def log(self, record: dict) -> None:
-        super().log(record)
-        if self._on_log is not None and "psnr" in record:
-            self._on_log({"iteration": self.iteration, **record})
-
-    def save_checkpoint(self, name: str = CHECKPOINT) -> Path:
-        return self.out / name
-
-    def finish(self) -> dict:
-        return {}
-
-
 @torch.no_grad()
 def render_depth(gaussians, camera, min_alpha: float = 0.5, backend: str = "auto") -> tuple[np.ndarray, np.ndarray]:
     """Expected z-depth (H, W) float32 (``inf`` where the opacity is below ``min_alpha``) and the opacity (H, W)."""
@@ -196,9 +170,12 @@ def fit_recon_depth(scene: Scene, config: ReconDepthConfig = ReconDepthConfig(),
 
     start = time.perf_counter()
     try:
-        trainer = _DepthFitTrainer(every, cfg, run, seed=config.seed, progress=False, on_log=progress)
-        trainer.train()
-        g = trainer.gaussians().detach()
+        # 3DGS through the runner, stopped at the fitted Gaussians: a cache fit is never resumed, so
+        # checkpoints, evaluation, renders and PLY would only cost time; the loop and guards are the runner's.
+        runner = Runner("3dgs", every, cfg, run, seed=config.seed, progress=False, checkpoints=False,
+                        on_log=progress)
+        runner.train()
+        g = runner.gaussians().detach()
         depths, psnrs = {}, []
         for view in every.views:
             z, _ = render_depth(g, view.camera, config.min_alpha, config.backend)
@@ -208,7 +185,7 @@ def fit_recon_depth(scene: Scene, config: ReconDepthConfig = ReconDepthConfig(),
     finally:
         shutil.rmtree(run, ignore_errors=True)
     seconds = time.perf_counter() - start
-    info = {"iterations": cfg.iterations, "gaussians": len(trainer.params),
+    info = {"iterations": cfg.iterations, "gaussians": runner.method.num_gaussians,
             "psnr": psnrs[-1] if psnrs else None, "fit_seconds": round(seconds, 3), "cached": False}
     say(f"recon depth: fitted in {seconds:.1f} s ({info['gaussians']} Gaussians)")
     return ReconDepth(depths, info)

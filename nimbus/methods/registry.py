@@ -1,0 +1,123 @@
+"""Every reconstruction method by name, with its class and presets imported only when used.
+
+``nimbus-train --method NAME``, ``nimbus-bench run`` and ``nimbus-bench tables`` look methods up
+here.  Adding a method is one file implementing :class:`~nimbus.methods.base.Method` and one
+entry in :data:`METHODS` (nothing registers itself on import)::
+
+    "my-method": MethodSpec("my-method", "what it is", "nimbus.methods.my_method:MyMethod"),
+
+NimbusGS's ablation variants are entries too: ``nimbus`` decides its components from the
+data (``components=auto``); the variants start from every component forced on
+(``nimbus-full``, as in the paper's ablations) and change one thing.  Each is also
+reachable as ``--method nimbus --set ...`` (see :mod:`nimbus.nimbusgs.config`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from nimbus.errors import NimbusError
+
+#: ``module:function`` of the 3DGS presets (``preset(name) -> TrainConfig``) and of NimbusGS's.
+GS_PRESETS = "nimbus.train.config:preset"
+NIMBUS_PRESETS = "nimbus.nimbusgs.config:preset"
+NIMBUS = "nimbus.methods.nimbusgs:NimbusGS"
+FULL = "csm,plm,ggs"
+
+
+def _import(target: str) -> Any:
+    module, _, name = target.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """A named reconstruction method.
+
+    Attributes
+    ----------
+    name : str
+    description : str
+    target : str
+        ``module:Class`` of the :class:`~nimbus.methods.base.Method` (imported by :meth:`load`).
+    presets : str
+        ``module:function`` mapping a preset name (``tiny``, ``fast``, ``paper``) to a config.
+    changes : dict
+        Config fields set on top of the preset; a callable value is called with the preset's config
+        (for schedule-relative settings).
+    """
+
+    name: str
+    description: str
+    target: str
+    presets: str = GS_PRESETS
+    changes: dict[str, Any] = field(default_factory=dict)
+
+    def load(self) -> type:
+        """The method's class."""
+        return _import(self.target)
+
+    def preset(self, preset_name: str):
+        """The method's config for ``preset_name`` (raises NimbusError for an unknown preset)."""
+        config = _import(self.presets)(preset_name)
+        changes = {k: v(config) if callable(v) else v for k, v in self.changes.items()}
+        return dataclasses.replace(config, **changes) if changes else config
+
+
+def _paper_m_init(k: int) -> Callable:
+    """``m_init`` of the paper's M_init = ``k`` (iterations of its 30k schedule), scaled to the preset."""
+    def m_init(config) -> int:
+        from nimbus.nimbusgs.config import paper_m_init
+
+        return paper_m_init(config, k)
+
+    return m_init
+
+
+def _nimbus(name: str, description: str, **changes) -> MethodSpec:
+    return MethodSpec(name, description, NIMBUS, NIMBUS_PRESETS, changes)
+
+
+#: The paper's M_init ablation (iterations of its 30k schedule), scaled to the preset.
+M_INIT_VARIANTS = (1000, 2000, 4000, 10_000, 15_000)
+
+_SPECS = [
+    MethodSpec("3dgs", "vanilla 3D Gaussian Splatting (Inria defaults)", "nimbus.methods.gs3d:GaussianSplatting"),
+    _nimbus("nimbus", "NimbusGS; components (CSM / PLM / GGS) chosen from the input views"),
+    _nimbus("nimbus-full", "NimbusGS with every component forced on", components=FULL),
+    _nimbus("nimbus-no-csm", "NimbusGS without continuous scattering modelling", components="plm,ggs"),
+    _nimbus("nimbus-no-plm", "NimbusGS without the particulate layer", components="csm,ggs"),
+    _nimbus("nimbus-no-ggs", "NimbusGS without geometry-guided gradient scaling", components="csm,plm"),
+    _nimbus("nimbus-gaussian-extinction", "ablation: extinction as a per-Gaussian attribute",
+            components=FULL, extinction="gaussian"),
+    _nimbus("nimbus-uniform-extinction", "ablation: one global extinction coefficient",
+            components=FULL, extinction="uniform"),
+    _nimbus("nimbus-restored-residuals", "ablation: residuals against a classical 2D restoration",
+            components=FULL, residual_source="restored"),
+    _nimbus("nimbus-ggs-no-depth", "ablation: GGS without its depth factor", components=FULL, ggs_depth=False),
+    _nimbus("nimbus-ggs-no-radius", "ablation: GGS without its radius factor", components=FULL, ggs_radius=False),
+    _nimbus("nimbus-ggs-no-error", "ablation: GGS without its error factor", components=FULL, ggs_error=False),
+    _nimbus("nimbus-no-dcp", "ablation: without the dark-channel loss", components=FULL, lambda_dcp=0.0),
+    _nimbus("nimbus-dcp-stage2", "ablation: dark-channel loss kept in stage 2", components=FULL, dcp_stage2=True),
+    _nimbus("nimbus-no-tv", "ablation: without the TV loss on the extinction", components=FULL, lambda_tv=0.0),
+    _nimbus("nimbus-airlight-constant", "variant: one constant airlight colour", components=FULL,
+            airlight="constant"),
+    _nimbus("nimbus-airlight-sh", "variant: airlight as SH of the ray direction (released code)",
+            components=FULL, airlight="sh"),
+    *(_nimbus(f"nimbus-minit-{k // 1000}k",
+              f"ablation: M_init = {k // 1000}k of the paper's 30k iterations, scaled to the preset",
+              components=FULL, m_init=_paper_m_init(k)) for k in M_INIT_VARIANTS),
+]
+
+#: name -> :class:`MethodSpec`, in the order above.
+METHODS: dict[str, MethodSpec] = {spec.name: spec for spec in _SPECS}
+
+
+def get_method(name: str) -> MethodSpec:
+    try:
+        return METHODS[name]
+    except KeyError:
+        raise NimbusError(f"unknown method {name!r}; choose one of: {', '.join(sorted(METHODS))}") from None

@@ -1,0 +1,251 @@
+"""NimbusGS's degradation model: ``I_deg = I_hat * T + P + R`` (supplementary Algorithm 1).
+
+- :class:`Medium` (CSM): the extinction (a grid, one uniform coefficient, or a per-Gaussian
+  attribute with a global scale), the airlight, and their optimiser; it gives a view's
+  transmission ``T`` [H, W, 1] and scattered light ``P`` [H, W, 3] by marching the rays
+  through the content box up to the rendered surface.
+- :func:`compose`: the continuous composite ``I_con = I_hat T + P``.
+- :class:`ParticulateLayer` (PLM): the per-view residuals ``R`` (rain, snow), extracted as
+  ``ReLU(I_in - I_con)`` capped by the input's white top-hat, and stored per training view.
+
+The training schedule around them (stages, refreshes, the automatic component choice, GGS)
+is the method's: :mod:`nimbus.methods.nimbusgs`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import torch
+from torch import Tensor
+
+from nimbus.data import Camera
+from nimbus.nimbusgs.airlight import make_airlight
+from nimbus.nimbusgs.config import NimbusConfig
+from nimbus.nimbusgs.particulate import (ResidualStore, ViewGeometry, consistency_excess, extract_residual,
+                                         neighbours, tophat_window, white_tophat)
+from nimbus.nimbusgs.scattering import (Box, ExtinctionGrid, UniformExtinction, ViewRays, camera_rays,
+                                        density_scale_for, gaussian_extinction_map, march, march_interval,
+                                        ray_box_interval, surface_in_box)
+
+#: Bounds of the data-driven initial transmission (ours): keeps the initial medium neither absent nor opaque.
+INIT_TRANSMISSION_RANGE = (0.2, 0.95)
+#: ``init_dehaze`` divides by at least this transmission (He et al.'s t0), so far points are not amplified.
+DEHAZE_MIN_TRANSMISSION = 0.1
+#: Voxels per axis of the throw-away grid used to time the ray march a haze-free scene skips.
+_TIMING_GRID = 4
+
+
+def march_backend(config: NimbusConfig) -> str:
+    """The ray march follows the rasterizer's backend: ``auto`` and ``cpp`` march compiled where the kernel
+    applies (:func:`~nimbus.nimbusgs.scattering.march`), ``torch`` and gsplat's CUDA march in torch."""
+    return "auto" if config.backend in ("auto", "cpp") else "torch"
+
+
+def compose(clean: Tensor, transmission: Tensor, scatter: Tensor) -> Tensor:
+    """``I_con = I_hat T + P``: the clean render [H, W, 3] seen through the medium."""
+    return clean * transmission + scatter
+
+
+class Medium:
+    """The continuous medium (CSM) in a content box, and the Adam of its parameters.
+
+    Parameters
+    ----------
+    config : NimbusConfig
+        ``extinction`` (grid / uniform / gaussian), ``grid_*``, ``airlight*``, learning rates.
+    box : Box
+        The region the medium fills (training frame).
+    transmission : float
+        The initial transmission along a typical ray (sets the initial density scale).
+    ray_length : float
+        The typical ray length that transmission is for.
+    airlight : Tensor
+        [3] initial airlight colour.
+    seed : int
+        Seeds the grid's initial noise (``seed + 1``, apart from the Gaussians' generator).
+    device : torch.device
+    """
+
+    def __init__(self, config: NimbusConfig, box: Box, transmission: float, ray_length: float, airlight: Tensor,
+                 seed: int, device: torch.device) -> None:
+        c = config
+        self.cfg = config
+        self.box = box
+        self.box_tensors = box.tensors(device)
+        scale = density_scale_for(transmission, ray_length)
+        gen = torch.Generator().manual_seed(seed + 1)
+        self.field = None
+        #: Global scale of per-Gaussian extinction (``extinction="gaussian"``), else None.
+        self.ext_log_scale: Tensor | None = None
+        groups = []
+        if c.extinction == "grid":
+            self.field = ExtinctionGrid(box, c.grid_resolution, c.grid_init_std, scale, gen).to(device)
+            groups.append({"params": list(self.field.parameters()), "lr": c.lr_extinction, "name": "extinction"})
+        elif c.extinction == "uniform":
+            self.field = UniformExtinction(box, scale).to(device)
+            groups.append({"params": list(self.field.parameters()), "lr": c.lr_extinction, "name": "extinction"})
+        else:
+            self.ext_log_scale = torch.tensor(math.log(scale), device=device, requires_grad=True)
+            groups.append({"params": [self.ext_log_scale], "lr": c.lr_extinction, "name": "extinction"})
+        self.airlight = make_airlight(c.airlight, airlight, c.airlight_hidden, c.airlight_sh_degree).to(device)
+        groups.append({"params": list(self.airlight.parameters()), "lr": c.lr_airlight, "name": "airlight"})
+        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=c.adam_eps)
+        self.initial_transmission = transmission
+        self.initial_density_scale = scale
+
+    # --- T and P ---------------------------------------------------------------------------
+    def forward(self, rays: ViewRays, render: dict, descriptor: Tensor,
+                extinction_image: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """``(T [H, W, 1], P [H, W, 3])`` of one view.
+
+        ``render`` has the view's ``depth`` and ``alpha`` (the march ends at the surface); ``descriptor``
+        conditions the airlight; ``extinction_image`` [H, W] is the alpha-blended per-Gaussian extinction
+        (only for ``extinction="gaussian"``).
+        """
+        c = self.cfg
+        depth, alpha = render["depth"], render["alpha"]
+        if not c.surface_depth_grad:
+            depth, alpha = depth.detach(), alpha.detach()
+        lo, hi = self.box_tensors
+        t_start, t_end = march_interval(rays, lo, hi, depth, alpha, c.near_plane, c.surface_alpha_min)
+        if self.field is not None:
+            res = march(self.field, rays.origin, rays.dirs, t_start, t_end, c.ray_samples, march_backend(c))
+        else:
+            res = gaussian_extinction_map(extinction_image, alpha, t_start, t_end)
+        a = self.airlight(rays.dirs, res.transmission, descriptor)
+        h, w = rays.height, rays.width
+        return res.transmission.reshape(h, w, 1), (res.scatter[:, None] * a).reshape(h, w, 3)
+
+    def surface_mask(self, rays: ViewRays, render: dict) -> Tensor:
+        """[H, W] bool: pixels whose march ends at a surface inside the box (``dcp_surface_only``)."""
+        lo, hi = self.box_tensors
+        mask = surface_in_box(rays, lo, hi, render["depth"].detach(), render["alpha"].detach(),
+                              self.cfg.surface_alpha_min)
+        return mask.reshape(rays.height, rays.width)
+
+    def initial_transmission_to(self, points: Tensor, cameras: list[Camera]) -> Tensor:
+        """``[N]`` transmission of the initial medium from the cameras to ``points``: the median over the
+        cameras that see a point (in front, inside the image), through the box only."""
+        lo, hi = (x.double().cpu() for x in self.box_tensors)
+        beta0 = math.log(2.0) * self.initial_density_scale  # softplus(0) * scale: the initial features are ~0
+        pts = points.detach().double().cpu()
+        taus = torch.full((len(cameras), pts.shape[0]), float("nan"), dtype=torch.float64)
+        for k, cam in enumerate(cameras):
+            uv, z = cam.project(pts.numpy())
+            seen = torch.as_tensor((z > self.cfg.near_plane) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width)
+                                   & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height))
+            origin = torch.as_tensor(cam.center, dtype=torch.float64)
+            vec = pts - origin
+            dist = vec.norm(dim=1).clamp_min(1e-12)
+            entry, exit_ = ray_box_interval(origin, vec / dist[:, None], lo, hi)
+            length = (torch.minimum(dist, exit_) - entry.clamp_min(self.cfg.near_plane)).clamp_min(0.0)
+            taus[k] = torch.where(seen, beta0 * length, torch.nan)
+        tau = taus.nanmedian(dim=0).values
+        tau = torch.where(torch.isnan(tau), torch.zeros_like(tau), tau)  # seen by no camera: leave the colour
+        return torch.exp(-tau).float()
+
+    # --- parameters ------------------------------------------------------------------------
+    def beta_values(self, extinction_logit: Tensor | None) -> Tensor | None:
+        """The extinction coefficients (per voxel, the uniform one, or per Gaussian), training-frame units."""
+        if self.field is not None:
+            return self.field.values().detach()
+        if self.ext_log_scale is not None and extinction_logit is not None:
+            return torch.nn.functional.softplus(extinction_logit.detach()) * torch.exp(self.ext_log_scale.detach())
+        return None
+
+    def param_groups(self) -> list[dict]:
+        return list(self.optimizer.param_groups)
+
+    def step(self) -> None:
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+
+    def state_dict(self) -> dict:
+        """Tensors and plain values only (``box`` as two lists of floats)."""
+        return {"box": ([float(x) for x in self.box.lo], [float(x) for x in self.box.hi]),
+                "optimizer": self.optimizer.state_dict(), "airlight": self.airlight.state_dict(),
+                "field": self.field.state_dict() if self.field is not None else None,
+                "ext_log_scale": self.ext_log_scale.detach().clone() if self.ext_log_scale is not None else None,
+                "initial_transmission": float(self.initial_transmission)}
+
+    def load_state_dict(self, state: dict) -> None:
+        if state["field"] is not None:
+            self.field.load_state_dict(state["field"])
+        if state["ext_log_scale"] is not None:
+            with torch.no_grad():
+                self.ext_log_scale.copy_(state["ext_log_scale"])
+        self.airlight.load_state_dict(state["airlight"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.initial_transmission = state["initial_transmission"]
+
+
+def estimate_march_time(config: NimbusConfig, box: Box, camera: Camera, device: torch.device) -> float:
+    """Seconds of one view's ray march (forward + backward), timed on a throw-away coarse grid in ``box``."""
+    grid = ExtinctionGrid(box, _TIMING_GRID, 0.01, 0.01).to(device)
+    rays = camera_rays(camera, device)
+    depth = torch.full((camera.height, camera.width), 1.0, device=device)
+    t0 = time.perf_counter()
+    ts, te = march_interval(rays, grid.lo, grid.hi, depth, torch.ones_like(depth), config.near_plane,
+                            config.surface_alpha_min)
+    res = march(grid, rays.origin, rays.dirs, ts, te, config.ray_samples, march_backend(config))
+    (res.transmission.sum() + res.scatter.sum()).backward()
+    return time.perf_counter() - t0
+
+
+def masked(r: Tensor, mask: Tensor | None) -> Tensor:
+    """``r`` with the masked pixels zeroed: the loss ignores them, so R has nothing to explain there."""
+    return r if mask is None else r * mask[..., None].to(r.dtype)
+
+
+def valid_image(image: Tensor, mask: Tensor | None, composite: Tensor) -> Tensor:
+    """``image`` with its masked pixels taken from ``composite``: no residual there."""
+    return image if mask is None else torch.where(mask[..., None], image, composite.to(image.dtype))
+
+
+def view_excesses(config: NimbusConfig, images: list[Tensor], geometry: list[ViewGeometry]) -> list[Tensor | None]:
+    """Per view, the view-inconsistent excess over its neighbours (None when the check is off)."""
+    if config.consistency_neighbours < 1 or config.residual_outlier_sigmas <= 0:
+        return [None] * len(geometry)
+    others = neighbours([g.camera for g in geometry], config.consistency_neighbours)
+    return [consistency_excess(i, images, geometry, others[i]) for i in range(len(geometry))]
+
+
+class ParticulateLayer:
+    """The per-view residuals R (PLM) of the training views.
+
+    Parameters
+    ----------
+    config : NimbusConfig
+        ``residual_*`` settings.
+    images, masks : list
+        The training images [H, W, 3] and their validity masks ([H, W] bool or None).
+    device : torch.device
+    """
+
+    def __init__(self, config: NimbusConfig, images: list[Tensor], masks: list[Tensor | None],
+                 device: torch.device) -> None:
+        self.cfg = config
+        self.images = images
+        self.masks = masks
+        self.store = ResidualStore([tuple(img.shape[:2]) for img in images], device)
+        #: Per view, the input's white top-hat (uint8), the cap of R (filled on first use).
+        self._tophat: dict[int, Tensor] = {}
+
+    def residual(self, vi: int, composite: Tensor, excess: Tensor | None = None) -> Tensor:
+        """R of view ``vi`` against ``composite`` (I_con), capped by the view's top-hat."""
+        c = self.cfg
+        image = self.images[vi]
+        bound = None
+        window = tophat_window(image.shape[1], c.residual_tophat)
+        if window:
+            if vi not in self._tophat:  # from the input alone: computed once, kept as 8 bits
+                self._tophat[vi] = torch.round(white_tophat(image, window).clamp(0, 1) * 255).to(torch.uint8)
+            bound = self._tophat[vi].float() / 255
+        return masked(extract_residual(image, composite, c.residual_outlier_sigmas, excess, bound,
+                                       c.residual_outlier_scope), self.masks[vi])
+
+    def against(self, vi: int, reference: Tensor) -> Tensor:
+        """R of view ``vi`` against another ``reference`` (a classical restoration), uncapped."""
+        return masked(extract_residual(self.images[vi], reference), self.masks[vi])

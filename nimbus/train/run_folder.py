@@ -1,0 +1,83 @@
+"""Run folders: the scene a run was trained on, and its ``config.json`` record (what ``--resume`` reads back).
+
+A scene is named by a path (a COLMAP or transforms.json scene folder) or ``builtin:NAME[:SIZE]``;
+``config.json`` records that name, the method, the seed, every config field and the keyword
+arguments the scene was loaded with (:data:`SCENE_LOAD_ARGS`), as :meth:`~nimbus.train.runner.Runner.write_config`
+writes it.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from nimbus.cli_util import check_seed
+from nimbus.errors import NimbusError
+
+BUILTIN_PREFIX = "builtin:"
+#: What ``scene_load_args`` in a run's config.json may hold (the keyword arguments of :func:`load_scene_arg`).
+SCENE_LOAD_ARGS = ("downscale",)
+
+
+def load_scene_arg(spec: str, downscale: int = 1):
+    """A scene from a path, or ``builtin:NAME[:SIZE]`` rendered in memory (default size tiny).
+
+    A built-in scene has no ``images_N`` copies, so ``downscale`` other than 1 is refused for it
+    (pick a smaller SIZE, or ``--set train_downscale=N``) rather than silently ignored.
+    """
+    check_downscale(spec, downscale)
+    if spec.startswith(BUILTIN_PREFIX):
+        from nimbus.data.builtin import render_builtin
+
+        parts = spec[len(BUILTIN_PREFIX):].split(":")
+        name, size = parts[0], (parts[1] if len(parts) > 1 else "tiny")
+        return render_builtin(name, size=size, seed=0)
+    from nimbus.data.io import load_scene
+
+    return load_scene(spec, downscale=downscale)
+
+
+def check_downscale(spec: str, downscale: int) -> None:
+    """Refuse a ``downscale`` that :func:`load_scene_arg` could not honour for ``spec``."""
+    if spec.startswith(BUILTIN_PREFIX) and downscale != 1:
+        raise NimbusError(f"--downscale {downscale} reads the images_{downscale}/ copies of a scene folder; "
+                          f"built-in scenes have none. Pick a smaller size ({BUILTIN_PREFIX}NAME:tiny) or "
+                          "train on shrunk images with --set train_downscale=N")
+
+
+def scene_input_folder(spec: str) -> Path | None:
+    """The folder a scene is read from (None for a built-in scene): what ``--out`` must stay apart from."""
+    if spec.startswith(BUILTIN_PREFIX):
+        return None
+    path = Path(spec)
+    return path.parent if path.is_file() else path  # a transforms*.json file reads its folder
+
+
+def read_run_config(run: Path) -> dict:
+    """The checked ``config.json`` of run folder ``run``: method, scene, seed, config and scene_load_args.
+
+    Raises NimbusError naming the file for anything that is not what
+    :meth:`~nimbus.train.runner.Runner.write_config` writes.
+    """
+    cfg_file = run / "config.json"
+    fix = "it is not a config.json written by nimbus-train; restore it or start a new run with --out"
+    try:
+        saved = json.loads(cfg_file.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as e:
+        raise NimbusError(f"cannot read {cfg_file} ({e.__class__.__name__}); check its permissions") from None
+    except (ValueError, RecursionError) as e:
+        raise NimbusError(f"{cfg_file} is not valid JSON ({str(e)[:120]}); {fix}") from None
+    if not isinstance(saved, dict):
+        raise NimbusError(f"{cfg_file} holds a {type(saved).__name__}, not an object; {fix}")
+    for key, kind in (("method", str), ("scene", str), ("seed", int), ("config", dict)):
+        if key not in saved:
+            raise NimbusError(f"{cfg_file} has no {key!r}; {fix}")
+        if not isinstance(saved[key], kind) or isinstance(saved[key], bool):
+            raise NimbusError(f"{cfg_file}: {key!r} is {saved[key]!r}, expected a {kind.__name__}; {fix}")
+    check_seed(saved["seed"], f"{cfg_file}: 'seed'")
+    load_args = saved.get("scene_load_args") or {}
+    if (not isinstance(load_args, dict) or not set(load_args) <= set(SCENE_LOAD_ARGS)
+            or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in load_args.values())):
+        raise NimbusError(f"{cfg_file}: 'scene_load_args' is {load_args!r}, expected {{\"downscale\": N}} with "
+                          f"N >= 1 (or nothing); {fix}")
+    return {**saved, "scene_load_args": load_args}
