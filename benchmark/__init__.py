@@ -1,2 +1,2 @@
 """The benchmark harness (``nimbus-bench``: metrics, scoring of any method's renders, LPIPS weight set-up)
-and speed / quality measurement scripts (run with ``python -m benchmark.bench_<name>``)."""
+and speed / quality measurement scripts (run with ``python -m benchmark.speed.<name>``)."""

@@ -1,22 +1,14 @@
 """``nimbus-bench``: score renders against ground truth, and (later) run, tabulate and stress the benchmark.
 
-Each subcommand lives in its own module (see :class:`nimbus.cli_util.SubcommandTool`);
-adding a subcommand is one entry in :data:`COMMANDS`.
+Each subcommand lives in its own module of :mod:`benchmark.commands` (see :class:`nimbus.cli_util.SubcommandTool`);
+adding a subcommand is one module there and its name in :data:`COMMANDS`.
 """
 
 from nimbus.cli_util import SubcommandTool
 
 # Subcommand name -> module defining it (order is the order in --help).
-COMMANDS = {
-    "setup-weights": "benchmark.setup_weights",
-    "score": "benchmark.score",
-    "run": "benchmark.run",
-    "tables": "benchmark.tables_cmd",
-    "reference": "benchmark.reference",
-    "tradeoff": "benchmark.tradeoff",
-    "stability": "benchmark.stability",
-    "hostile": "benchmark.hostile",
-}
+COMMANDS = {name: f"benchmark.commands.{name.replace('-', '_')}"
+            for name in ("setup-weights", "score", "run", "tables", "reference", "tradeoff", "stability", "hostile")}
 
 TOOL = SubcommandTool(
     "nimbus-bench",

@@ -44,10 +44,7 @@ exits 1 when any row fails.  Outputs, written atomically into ``--out``: ``hosti
 
 from __future__ import annotations
 
-import argparse
-import csv
 import hashlib
-import io
 import json
 import os
 import re
@@ -57,13 +54,13 @@ import signal
 import stat
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
+from benchmark.report import rows_csv, shorten
 from nimbus.cli_util import pick_by_name
 from nimbus.errors import NimbusError
 
@@ -804,7 +801,7 @@ def run_case(case: HostileCase, work: Path, base: Base, baseline: Baseline | Non
     """One row of the report (module docstring)."""
     sb = Sandbox(work / "cases" / case.name, base)
     if sb.root.exists():
-        _make_removable(sb.root)
+        make_removable(sb.root)
         shutil.rmtree(sb.root)
     sb.box.mkdir(parents=True)
     sb.outside.mkdir()
@@ -857,11 +854,11 @@ def run_case(case: HostileCase, work: Path, base: Base, baseline: Baseline | Non
             problems += case.check(sb, children)
         except Exception as e:  # a check that cannot run fails the case, not the report
             problems.append(f"check failed: {e.__class__.__name__}: {e}")
-    _make_removable(sb.root)
+    make_removable(sb.root)
     return _finish(row, problems)
 
 
-def _make_removable(root: Path) -> None:
+def make_removable(root: Path) -> None:
     """Give back write permission a case took away (read-only --out), so the work folder can be removed."""
     for dirpath, dirnames, _ in os.walk(root):
         for d in dirnames:
@@ -895,16 +892,11 @@ def run_report(cases: Sequence[HostileCase], work: str | Path,
             baseline = baselines[key]
         rows.append(run_case(case, work, base, baseline))
         r = rows[-1]
-        say(f"[{i}/{len(cases)}] {case.name}: {r['outcome']} ({_short(r['message'], 90)}) -> {r['verdict']}")
+        say(f"[{i}/{len(cases)}] {case.name}: {r['outcome']} ({shorten(r['message'], 90)}) -> {r['verdict']}")
     return rows
 
 
 # --- tables ------------------------------------------------------------------------------------
-def _short(text: str, n: int) -> str:
-    text = " ".join(str(text).split())
-    return text if len(text) <= n else text[: n - 3] + "..."
-
-
 def _cell(row: dict, col: str) -> str:
     v = row.get(col)
     if isinstance(v, list):
@@ -917,12 +909,7 @@ def _cell(row: dict, col: str) -> str:
 
 
 def to_csv(rows: Sequence[dict]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(COLUMNS)
-    for r in rows:
-        w.writerow([_cell(r, c) for c in COLUMNS])
-    return buf.getvalue()
+    return rows_csv(rows, COLUMNS, _cell)
 
 
 def to_markdown(rows: Sequence[dict], cases: Sequence[HostileCase], wall_s: float | None = None) -> str:
@@ -941,7 +928,7 @@ def to_markdown(rows: Sequence[dict], cases: Sequence[HostileCase], wall_s: floa
              + (f"**{len(failed)} failed**." if failed else "all met their expectation."), "",
              "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in rows:
-        cells = [_short(_cell(r, c), MD_MESSAGE_CHARS) if c in ("message", "verdict") else _cell(r, c) for c in cols]
+        cells = [shorten(_cell(r, c), MD_MESSAGE_CHARS) if c in ("message", "verdict") else _cell(r, c) for c in cols]
         lines.append("| " + " | ".join(x.replace("|", "\\|") for x in cells) + " |")
     lines += ["", "| case | what is hostile | command (in the sandbox) |", "|---|---|---|"]
     for c in cases:
@@ -959,48 +946,3 @@ def write_report(out: str | Path, rows: Sequence[dict], cases: Sequence[HostileC
         (tmp / names[0]).write_text(to_csv(rows))
         (tmp / names[1]).write_text(to_markdown(rows, cases, wall_s))
     return [Path(out) / n for n in names]
-
-
-# --- command line (``nimbus-bench hostile``) ---------------------------------------------------
-HELP = "run hostile and faulty inputs through nimbus-synth / -train / -bench in sandboxes: outcome, inputs " \
-       "modified, writes outside --out, partial output, time and memory"
-EXAMPLE = "nimbus-bench hostile --out hostile/ --cases pickle_resume,points3d_count_2e60"
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", default="hostile", help="folder for hostile.md / hostile.csv")
-    p.add_argument("--cases", default="all", help="comma list of case names (see --list) or all")
-    p.add_argument("--work", default=None, metavar="DIR",
-                   help="keep the sandboxes in DIR (default: a temporary folder, removed afterwards)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
-    p.add_argument("--list", action="store_true", help="describe the cases and exit")
-
-
-def run(args: argparse.Namespace) -> int:
-    from nimbus.utils.fs import check_output_dir
-
-    cases = get_cases(args.cases)
-    if args.list:
-        for c in cases:
-            print(f"{c.name:<28} {c.description}\n{'':<28} expected: {c.expect}; {c.command}")
-        return 0
-    check_output_dir(args.out, args.overwrite)  # before any work: a bad --out should not cost a run
-    t0 = time.perf_counter()
-    if args.work:
-        rows = run_report(cases, args.work)
-    else:
-        with tempfile.TemporaryDirectory(prefix="nimbus-hostile-") as work:
-            try:
-                rows = run_report(cases, work)
-            finally:
-                _make_removable(Path(work))  # a read-only --out case would stop the clean-up
-    wall = time.perf_counter() - t0
-    written = write_report(args.out, rows, cases, overwrite=args.overwrite, wall_s=wall)
-    print(to_markdown(rows, cases, wall), end="")
-    for p in written:
-        print(p, file=sys.stderr)
-    failed = [r for r in rows if r["verdict"] != "ok"]
-    if failed:
-        print(f"{len(failed)} case(s) failed the report: " + ", ".join(r["case"] for r in failed), file=sys.stderr)
-        return 1
-    return 0

@@ -31,15 +31,11 @@ table: :data:`COLUMNS`) and ``stability.json`` (every row with its details and t
 
 from __future__ import annotations
 
-import argparse
-import csv
 import dataclasses
-import io
 import json
 import math
 import shutil
 import sys
-import tempfile
 import time
 import traceback
 from dataclasses import dataclass
@@ -49,6 +45,7 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 
 from benchmark.cell import SYNTH_PROTOCOL, SYNTH_SEED
+from benchmark.report import rows_csv, shorten
 from nimbus.cli_util import pick_by_name
 from nimbus.errors import NimbusError
 
@@ -506,7 +503,7 @@ def format_progress(row: dict, i: int, n: int) -> str:
     if row["outcome"] == "finished":
         head += f", PSNR {_fmt(row['psnr'], '.2f')} SSIM {_fmt(row['ssim'], '.3f')} LPIPS {_fmt(row['lpips'], '.3f')}"
     else:
-        head += f" ({row['stage']}: {_short(row['message'], 100)})"
+        head += f" ({row['stage']}: {shorten(row['message'], 100)})"
     nan = f", NaN/inf in {', '.join(row['nan_where'])}" if row["nan_seen"] else ""
     return f"{head}{nan}, {row['seconds']:.1f} s -> {row['verdict']}"
 
@@ -517,11 +514,6 @@ def _fmt(v, spec: str) -> str:
     if isinstance(v, float) and math.isinf(v):
         return "inf"
     return format(v, spec)
-
-
-def _short(text: str, n: int) -> str:
-    text = " ".join(str(text).split())
-    return text if len(text) <= n else text[:n - 3] + "..."
 
 
 # --- tables -----------------------------------------------------------------------------------
@@ -537,12 +529,7 @@ def _cell(row: dict, col: str) -> str:
 
 
 def to_csv(rows: Iterable[dict]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(COLUMNS)
-    for r in rows:
-        w.writerow([_cell(r, c) for c in COLUMNS])
-    return buf.getvalue()
+    return rows_csv(rows, COLUMNS, _cell)
 
 
 def to_markdown(rows: Sequence[dict], cases: Sequence[StabilityCase], options: StabilityOptions,
@@ -567,7 +554,7 @@ def to_markdown(rows: Sequence[dict], cases: Sequence[StabilityCase], options: S
             if c == "nan_seen" and r["nan_seen"]:
                 text = f"yes ({_cell(r, 'nan_where')})"
             if c == "message":
-                text = _short(text, MD_MESSAGE_CHARS)
+                text = shorten(text, MD_MESSAGE_CHARS)
             cells.append(text.replace("|", "\\|"))
         lines.append("| " + " | ".join(cells) + " |")
     lines += ["", "| case | input | expected | what is extreme |", "|---|---|---|---|"]
@@ -593,76 +580,3 @@ def write_report(out: str | Path, rows: Sequence[dict], cases: Sequence[Stabilit
         (tmp / names[1]).write_text(to_markdown(rows, cases, options, wall_s))
         (tmp / names[2]).write_text(json.dumps(jsonable(doc), indent=2, sort_keys=True) + "\n")
     return [Path(out) / n for n in names]
-
-
-# --- command line (``nimbus-bench stability``) ---------------------------------------------------
-HELP = "run extreme inputs (no / opaque haze, black / white images, one view, degenerate Gaussians) through " \
-       "synthesis, training and scoring: outcome, NaNs, metrics, time"
-EXAMPLE = "nimbus-bench stability --out stability/ --cases no_haze,white_inputs --methods 3dgs"
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    from nimbus.metrics import LPIPS_NETS, SSIM_PROTOCOLS
-
-    p.add_argument("--out", default="stability", help="folder for stability.csv / .md / .json")
-    p.add_argument("--cases", default="all", help="comma list of case names (see --list) or all")
-    p.add_argument("--methods", default=None, help="run only these of each case's methods (comma list)")
-    p.add_argument("--iterations", type=int, default=DEFAULT_ITERATIONS,
-                   help="training iterations of every run (the preset's schedule is rescaled)")
-    p.add_argument("--preset", default=DEFAULT_PRESET, help="trainer preset: tiny, fast, paper")
-    p.add_argument("--scene", default=DEFAULT_SCENE, help="built-in scene the inputs are made from")
-    p.add_argument("--size", default=DEFAULT_SIZE, help="built-in scene size: tiny, small, standard")
-    p.add_argument("--ssim", choices=tuple(SSIM_PROTOCOLS), default="3dgs", help="SSIM protocol (3dgs: paper)")
-    p.add_argument("--lpips", choices=LPIPS_NETS + ("none",), default="vgg", help="LPIPS network (vgg: paper)")
-    p.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
-    p.add_argument("--work", default=None, metavar="DIR",
-                   help="keep the inputs and runs in DIR (default: a temporary folder, removed afterwards)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
-    p.add_argument("--list", action="store_true", help="describe the cases and exit")
-
-
-def run(args: argparse.Namespace) -> int:
-    from nimbus.data.builtin import get_scene, get_size
-    from nimbus.methods.registry import get_method
-    from nimbus.utils.fs import check_output_dir
-
-    cases = get_cases(args.cases)
-    if args.list:
-        for c in cases:
-            print(f"{c.name:<20} {c.description}\n{'':<20} input: {c.input_summary}; methods: "
-                  f"{', '.join(c.methods)}; expected: {c.expect}")
-        return 0
-    check_output_dir(args.out, args.overwrite)  # before any work: a bad --out should not cost a run
-    get_scene(args.scene)
-    get_size(args.size)
-    if args.iterations < 2:
-        raise NimbusError(f"--iterations must be at least 2 (NimbusGS needs both stages), got {args.iterations}")
-    methods = None
-    if args.methods:
-        methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
-        for m in methods:
-            get_method(m)
-        if not any(m in c.methods for c in cases for m in methods):
-            raise NimbusError(f"none of the selected cases runs {', '.join(methods)}; "
-                              f"their methods are {', '.join(sorted({m for c in cases for m in c.methods}))}")
-    for m in {m for c in cases for m in c.methods}:
-        get_method(m).preset(args.preset)  # an unknown preset fails here, before any work
-    options = StabilityOptions(args.scene, args.size, args.preset, args.iterations, methods, args.ssim,
-                               None if args.lpips == "none" else args.lpips, args.device)
-    t0 = time.perf_counter()
-    if args.work:
-        rows = run_report(cases, args.work, options)
-    else:
-        with tempfile.TemporaryDirectory(prefix="nimbus-stability-") as work:
-            rows = run_report(cases, work, options)
-    wall = time.perf_counter() - t0
-    written = write_report(args.out, rows, cases, options, overwrite=args.overwrite, wall_s=wall)
-    print(to_markdown(rows, cases, options, wall), end="")
-    for p in written:
-        print(p, file=sys.stderr)
-    failed = [r for r in rows if r["verdict"] != "ok"]
-    if failed:
-        print(f"{len(failed)} run(s) failed the report: "
-              + "; ".join(f"{r['case']} / {r['method']} ({r['verdict']})" for r in failed), file=sys.stderr)
-        return 1
-    return 0

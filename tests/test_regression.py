@@ -108,7 +108,7 @@ SCENE_FIELDS = {"scene": "garden", "size": "tiny", "method": "nimbus", "preset":
 
 def cell_record(weather: str, **kw) -> dict:
     """A record naming a real cell (so its data folder can be found); the cell id as the grid writes it."""
-    from benchmark.grid import Cell
+    from benchmark.cell import Cell
 
     cell = Cell("garden", weather, "nimbus", "tiny", 0, "tiny")
     return {**record(cell.cell_id, **kw), **cell.to_dict()}

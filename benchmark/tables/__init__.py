@@ -15,5 +15,5 @@ module                          role
 A layout module builds :class:`~.model.Table` objects: ``tables(df, method_order) -> (tables,
 skipped)`` from the store and ``paper() -> {layout: table}`` from the paper's numbers (package
 data, :mod:`benchmark.data`).  A new layout is one such module plus one line in
-:data:`benchmark.tables_cmd.LAYOUTS`.
+:data:`benchmark.commands.tables.LAYOUTS`.
 """

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python -m benchmark.bench_nimbusgs [--scene builtin:garden:small] [--preset fast] [--repeats 5]
+    python -m benchmark.speed.nimbusgs [--scene builtin:garden:small] [--preset fast] [--repeats 5]
                                        [--threads N] [--reference] [--checkpoint RUN/checkpoint.pt]
 
 Builds a :class:`~nimbus.methods.nimbusgs.NimbusGS` (through :class:`~nimbus.train.runner.Runner`, so in

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python -m benchmark.bench_sfm [--scene garden] [--views 200,80,40,20] [--size 240x180]
+    python -m benchmark.speed.sfm [--scene garden] [--views 200,80,40,20] [--size 240x180]
                                   [--cases self,prior] [--threads 1] [--train [--preset fast]] [--json OUT]
 
 For each view count N, renders N views of the scene's camera rig (the orbit for
@@ -28,7 +28,6 @@ its error.  The photos are rendered with 2 x 2 supersampling, not timed.
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import sys
 import tempfile

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python -m benchmark.bench_synth [--scene DIR | --size standard] [--weather all] [--protocol onerestore]
+    python -m benchmark.speed.synth [--scene DIR | --size standard] [--weather all] [--protocol onerestore]
                                     [--memory-views 12]
 
 Degrades a scene (default: the built-in garden at ``standard`` size, 48 views of

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python -m benchmark.bench_photos_only [--scenes garden,street,tabletop] [--size small] [--preset fast]
+    python -m benchmark.speed.photos_only [--scenes garden,street,tabletop] [--size small] [--preset fast]
                                           [--weather-scene tabletop] [--weathers H,R,S] [--methods 3dgs,nimbus]
                                           [--jobs 2] [--device cpu|cuda] [--work DIR] [--json OUT] [--seed 0]
 

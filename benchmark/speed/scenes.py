@@ -2,7 +2,7 @@
 
 Usage::
 
-    python -m benchmark.bench_scenes [--sizes tiny small standard] [--scenes garden street tabletop]
+    python -m benchmark.speed.scenes [--sizes tiny small standard] [--scenes garden street tabletop]
                                      [--workers 2] [--reference-views 4]
 
 Prints one row per (scene, size): views, image size, samples per pixel, render
