@@ -71,7 +71,8 @@ class MediumConfig(TrainConfig):
         Initial backscatter colour B (R, G, B in (0, 1)).
     medium_from : int
         Warm-up: the medium is held at its initial values for the first ``medium_from`` iterations
-        (0: learned from the start).  Stretched with the schedule when ``iterations`` changes.
+        (0: learned from the start; the presets hold it for the first third of the run).  Stretched with the
+        schedule when ``iterations`` changes.
     """
 
     lr_medium: float = 0.05
@@ -96,9 +97,13 @@ class MediumConfig(TrainConfig):
         return dataclasses.replace(super().rescaled(iterations), medium_from=warmup)
 
 
+# The 3DGS presets of the same name (a comparison with 3dgs differs only by the medium), with the medium held
+# for the first third of the run: learned from the first step, it followed the grey initial Gaussians and
+# settled on a wrong B on one of three seeds of the foggy-wall test scene (tests/test_medium_3dgs.py); after
+# the warm-up B came within 0.022 of the truth on all three.
 PRESETS: dict[str, MediumConfig] = {
-    # The 3DGS presets of the same name (a comparison with 3dgs differs only by the medium).
-    name: MediumConfig(**dataclasses.asdict(GS_PRESETS[name])) for name in ("tiny", "fast", "paper")
+    name: MediumConfig(**{**dataclasses.asdict(GS_PRESETS[name]), "medium_from": GS_PRESETS[name].iterations // 3})
+    for name in ("tiny", "fast", "paper")
 }
 
 
