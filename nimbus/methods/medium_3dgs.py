@@ -162,10 +162,10 @@ class HomogeneousMedium:
         def rgb(value) -> Tensor:
             return torch.as_tensor(value, dtype=torch.float32, device=device).expand(3).clone()
 
-        self.raw = {"sigma_attn": _inverse_softplus(rgb(config.init_sigma_attn)),
-                    "sigma_bs": _inverse_softplus(rgb(config.init_sigma_bs)),
-                    "backscatter": torch.logit(rgb(config.init_backscatter))}
-        self.raw = {k: v.requires_grad_(True) for k, v in self.raw.items()}
+        raw = {"sigma_attn": _inverse_softplus(rgb(config.init_sigma_attn)),
+               "sigma_bs": _inverse_softplus(rgb(config.init_sigma_bs)),
+               "backscatter": torch.logit(rgb(config.init_backscatter))}
+        self.raw = {k: raw[k].requires_grad_(True) for k in MEDIUM_PARAMS}
         self.optimizer = torch.optim.Adam(
             [{"params": [self.raw[k]], "lr": config.lr_medium, "name": k} for k in MEDIUM_PARAMS])
 
