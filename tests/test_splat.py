@@ -79,12 +79,12 @@ def test_export_verb_from_a_run_folder(tmp_path, capsys):
     run = tmp_path / "run"
     write_gaussian_ply(run / "point_cloud.ply", **g)
     out = tmp_path / "scene.splat"
-    assert run_cli(TOOL.main, ["export", str(run), "--format", "splat", "--out", str(out)]) == 0
+    assert run_cli(TOOL.run, ["export", str(run), "--format", "splat", "--out", str(out)]) == 0
     assert "50 Gaussians" in capsys.readouterr().out
     ply = read_gaussian_ply(run / "point_cloud.ply")
     np.testing.assert_array_equal(read_splat(out)["means"], ply["means"][viewer_order(ply)])
     assert sorted(p.name for p in run.iterdir()) == ["point_cloud.ply"]  # the run folder is only read
-    assert run_cli(TOOL.main, ["export", str(run), "--out", str(out)]) == 2  # exists, no --overwrite
+    assert run_cli(TOOL.run, ["export", str(run), "--out", str(out)]) == 2  # exists, no --overwrite
     assert "--overwrite" in capsys.readouterr().err
-    assert run_cli(TOOL.main, ["export", str(tmp_path / "nowhere"), "--out", str(tmp_path / "x.splat")]) == 2
+    assert run_cli(TOOL.run, ["export", str(tmp_path / "nowhere"), "--out", str(tmp_path / "x.splat")]) == 2
     assert "does not exist" in capsys.readouterr().err
