@@ -112,22 +112,6 @@ def url(path: str | os.PathLike) -> str:
 
 
 # --- the store -------------------------------------------------------------------------------
-def require_store(root: str | os.PathLike) -> Path:
-    """``ROOT/results.jsonl``, or NimbusError with what to do when it is missing or unreadable."""
-    from benchmark.store import store_path
-
-    root, store = Path(root), store_path(root)
-    try:
-        if root.exists() and not root.is_dir():
-            raise NimbusError(f"--root {root} is a file; give the benchmark folder that holds results.jsonl")
-        if not store.is_file():
-            raise NimbusError(f"{store} does not exist; run `nimbus-bench run --root {root}` first")
-    except PermissionError:
-        raise NimbusError(f"--root {root} cannot be read (permission denied); give read access or choose another "
-                          "--root") from None
-    return store
-
-
 def found_outputs(root: Path, given: Path | None, files: Sequence[str], flag: str) -> list[Path]:
     """Folders holding ``files[0]``: ``given`` (NimbusError when it has none), else ``ROOT`` and ``ROOT/*``."""
     if given is not None:
@@ -627,6 +611,7 @@ def build_report(root: str | os.PathLike, out: str | os.PathLike, options: Repor
         No store (or one without a finished cell), an ``out`` that is, holds or lies in the store's
         results, runs or data, or an existing non-empty ``out`` without ``overwrite``.
     """
+    from benchmark.store import require_store
     from nimbus.utils.fs import atomic_dir, check_output_dir, refuse_overlap
 
     root, out = Path(root), Path(out)

@@ -10,7 +10,6 @@ from __future__ import annotations
 import shutil
 import subprocess
 from html.parser import HTMLParser
-from pathlib import Path
 from urllib.parse import unquote
 
 import numpy as np
@@ -19,7 +18,7 @@ import pytest
 from benchmark.cell import CellOptions
 from benchmark.cli import TOOL
 from benchmark.grid import InlineExecutor, build_cells, run_grid
-from benchmark.html_report import (PAGE, ReportOptions, build_report, evenly_spaced, reproduce_commands)
+from benchmark.html_report import PAGE, ReportOptions, build_report, evenly_spaced, reproduce_commands
 from benchmark.store import load_results
 from nimbus.cli_util import run_cli
 from nimbus.errors import NimbusError
