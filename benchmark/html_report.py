@@ -55,11 +55,15 @@ from nimbus.errors import NimbusError
 
 PAGE = "index.html"
 IMAGES = "images"
-#: Thumbnails are at most this wide (never enlarged).
-THUMB_WIDTH = 256
+#: Thumbnails are at most this wide (never enlarged), a little more than they are shown (160 px): a 3-scene x
+#: 7-setting x 6-method store of 320 x 240 views made a 4.7 MB report (2 views a setting; noisy stand-in renders,
+#: the worst case for JPEG).
+THUMB_WIDTH = 192
 JPEG_QUALITY = 80
-#: ``|image - clean|`` is multiplied by this in the difference thumbnails, so small errors show.
+#: ``|image - clean|`` (mean over the channels) is multiplied by this in the difference thumbnails, so
+#: small errors show; they are grey, at a lower quality (their noise-like detail makes most of the bytes).
 DIFF_GAIN = 4.0
+DIFF_JPEG_QUALITY = 70
 #: Test views shown per scene and setting, by default.
 DEFAULT_VIEWS = 2
 #: Training views whose decomposition is shown per NimbusGS cell.
@@ -129,8 +133,9 @@ class ImageWriter:
         self.tmp, self.out, self.width, self.copy_full = tmp, out.resolve(), width, copy_full
         self.written: list[str] = []
 
-    def thumb(self, name: str, img: np.ndarray) -> str:
-        """Write ``img`` (float RGB [0, 1]) as ``images/<name>.jpg``, at most :attr:`width` wide; its src."""
+    def thumb(self, name: str, img: np.ndarray, quality: int = JPEG_QUALITY) -> str:
+        """Write ``img`` (float RGB or grey (H, W), [0, 1]) as ``images/<name>.jpg``, at most :attr:`width` wide;
+        its src."""
         import cv2
 
         from nimbus.data.images import to_uint8
@@ -138,8 +143,8 @@ class ImageWriter:
         h, w = img.shape[:2]
         if w > self.width:
             img = cv2.resize(img, (self.width, max(1, round(h * self.width / w))), interpolation=cv2.INTER_AREA)
-        ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(to_uint8(img)[:, :, ::-1]),
-                               [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        pixels = to_uint8(img) if img.ndim == 2 else to_uint8(img)[:, :, ::-1]
+        ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(pixels), [cv2.IMWRITE_JPEG_QUALITY, quality])
         if not ok:
             raise RuntimeError(f"JPEG encoding of {name} failed")
         rel = f"{IMAGES}/{name}.jpg"
@@ -171,7 +176,8 @@ def figure(images: ImageWriter, name: str, img: np.ndarray, full: Path, caption:
     src = images.thumb(name, img)
     attrs = f' data-thumb="{url(src)}"'
     if diff_against is not None:
-        attrs += f' data-diff="{url(images.thumb(name + "_diff", np.abs(img - diff_against) * DIFF_GAIN))}"'
+        diff = np.abs(img - diff_against).mean(axis=2) * DIFF_GAIN
+        attrs += f' data-diff="{url(images.thumb(name + "_diff", diff, DIFF_JPEG_QUALITY))}"'
     small = " small" if img.shape[1] < images.width // 2 else ""
     return (f'<figure><a class="zoom" href="{url(images.full(full, name))}"><img class="thumb{small}" '
             f'src="{url(src)}"{attrs} alt="{e(caption)}" loading="lazy"></a><figcaption>{e(caption)}</figcaption>'
@@ -533,7 +539,7 @@ table.sortable th{cursor:pointer;background:#f0f0f0;user-select:none}
 table.sortable th[data-dir=asc]::after{content:" ▲"}table.sortable th[data-dir=desc]::after{content:" ▼"}
 td.best{font-weight:bold;background:#fbd0d0}td.second{text-decoration:underline;background:#fde6c8}
 table.views td,table.views th{vertical-align:top;border:none}
-figure{margin:0;width:168px}figure img{width:100%;display:block;border:1px solid #ccc}
+figure{margin:0;width:160px}figure img{width:100%;display:block;border:1px solid #ccc}
 img.small{image-rendering:pixelated}figcaption{font-size:12px;color:#444;text-align:center}
 img.plot{max-width:100%;border:1px solid #ccc}.wide{overflow-x:auto}.note{color:#555;font-size:12px}
 .missing{color:#a00;font-size:12px}.nimbus{display:flex;flex-wrap:wrap;gap:24px;align-items:flex-start}
@@ -581,7 +587,7 @@ def build_page(root: Path, tmp: Path, out: Path, options: ReportOptions, command
     sections = [("summary", "Summary", table_html(table)),
                 ("views", "Test views",
                  '<p class="toggle"><label><input type="checkbox" id="diff"> show the difference to the clean view '
-                 f"(|image − clean| × {DIFF_GAIN:g})</label> · click an image to enlarge it (full size)</p>"
+                 f"(|image − clean|, mean over the channels, × {DIFF_GAIN:g}, grey)</label> · click an image to enlarge it (full size)</p>"
                  + view_grids(root, recs, images, options))]
     nimbus = nimbus_sections(root, recs, images)
     if nimbus:
