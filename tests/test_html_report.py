@@ -7,6 +7,7 @@ and (where headless Chromium is installed) render to a page that is not blank.
 
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 from html.parser import HTMLParser
@@ -203,3 +204,25 @@ def test_the_page_renders_to_a_screenshot_that_is_not_blank(report, tmp_path):
     # Not blank: text and thumbnails make many distinct, non-white pixels.
     assert (img < 200).any(axis=2).mean() > 0.02
     assert len(np.unique(img.reshape(-1, 3), axis=0)) > 500
+
+
+@pytest.mark.skipif(_chromium() is None, reason="headless Chromium is not installed (apt-get install chromium)")
+def test_the_scripts_sort_toggle_the_differences_and_enlarge(report, tmp_path):
+    out, page, _ = report
+    probe = out / "probe.html"  # the page, clicked by a script of the test's, in the report folder (same paths)
+    probe.write_text(page.read_text(encoding="utf-8").replace(
+        "</body>", "<script>document.getElementById('diff').click();"
+                   "document.querySelector('#summary th:nth-child(2)').click();"
+                   "document.querySelector('a.zoom').click();</script></body>"), encoding="utf-8")
+    try:
+        dom = subprocess.run([_chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--dump-dom",
+                              probe.resolve().as_uri()], check=True, capture_output=True, text=True, timeout=120).stdout
+    finally:
+        probe.unlink()
+    parser = Page()
+    parser.feed(dom)
+    # Sorted by method name, ascending (the page lists nimbus first: --methods order).
+    assert [r[1] for r in parser.summary if r] == ["3dgs", "nimbus"]
+    diffs = re.findall(r'<img[^>]*\bsrc="([^"]+)"[^>]*\bdata-diff="([^"]+)"', dom)
+    assert diffs and all(src == diff for src, diff in diffs)  # every thumbnail shows its difference
+    assert re.search(r'<div id="lightbox" style="display: flex;"><img[^>]*src="[^"]+_diff\.jpg"', dom)
