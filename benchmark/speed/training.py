@@ -15,9 +15,9 @@ functions the method itself calls (nothing in ``nimbus`` changes and the arithme
 the same; each wrapper reads the clock, and on CUDA synchronises, around the call):
 
 ====================  ==================================================================
-projection + SH       the backend's ``project_and_shade``
+projection + SH       the backend's ``project_and_shade`` ("cpp", "torch")
 binning               its ``bin_gaussians``
-compositing fwd       its ``composite``
+compositing fwd       its ``composite`` (gsplat: its whole ``rasterization`` call)
 backward: raster      from the first gradient reaching the compositor's outputs to the
                       end of ``backward()`` (compositing + projection backward)
 backward: rest        the rest of ``backward()`` (loss, and NimbusGS's medium)
@@ -177,6 +177,7 @@ def _patch(stack: ExitStack, owner, name: str, wrapper) -> None:
 def instrumented(method, probe: Probe):
     """``method`` (built from :mod:`nimbus.methods`) with its parts timed by ``probe`` inside the block."""
     from nimbus.kernels import raster
+    from nimbus.render import backends
     from nimbus.render.backends import torch as torch_backend
 
     with ExitStack() as stack:
@@ -184,6 +185,10 @@ def instrumented(method, probe: Probe):
             _patch(stack, module, "project_and_shade", lambda f: probe.wrap("project", f))
             _patch(stack, module, "bin_gaussians", lambda f: probe.wrap("bin", f))
             _patch(stack, module, "composite", probe.wrap_composite)
+        if method.device.type == "cuda" and backends.available("gsplat", method.device):
+            import gsplat  # its one call is the whole forward rasterizer: counted as compositing
+
+            _patch(stack, gsplat, "rasterization", probe.wrap_composite)
         _patch(stack, torch.Tensor, "backward", probe.wrap_backward)
         for name, key in (("loss", "loss"), ("reweight_gradients", "ggs"), ("optimizer_step", "optimizer"),
                           ("after_step", "refresh")):
