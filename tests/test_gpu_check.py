@@ -32,7 +32,8 @@ def test_a_crashing_check_is_a_fail_line():
         raise RuntimeError("CUDA error: no kernel image is available\nmore")
 
     (v,) = gpu_check._guarded(broken, "torch vs reference", "cuda")
-    assert v.status == "FAIL" and v.line() == "FAIL  torch vs reference: RuntimeError: CUDA error: no kernel image is available"
+    assert v.status == "FAIL"
+    assert v.line() == "FAIL  torch vs reference: RuntimeError: CUDA error: no kernel image is available"
 
 
 def test_torch_backend_and_march_checks_pass_on_the_cpu():
