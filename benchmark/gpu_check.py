@@ -168,7 +168,9 @@ def check_march(device) -> Verdict:
         field.zero_grad(set_to_none=True)
         res = fn(field, origin.to(where), dirs.to(where), t_start.to(where), t_end.to(where), 16)
         (res.transmission * weights[0].to(where) + res.scatter * weights[1].to(where)).sum().backward()
-        results.append([res.transmission.detach().cpu(), res.scatter.detach().cpu(), field.features.grad.cpu()])
+        # Copies: on the CPU .cpu() returns the gradient itself, and moving the grid to the GPU next swaps the
+        # data of its parameters' gradients in place (Module.to), so the reference's gradient would move too.
+        results.append([t.detach().cpu().clone() for t in (res.transmission, res.scatter, field.features.grad)])
     grid.to("cpu")
     try:
         for what, a, b in zip(("transmission", "scatter", "grid gradient"), results[1], results[0]):
