@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from nimbus.errors import NimbusError
+from nimbus.utils.onnx_session import open_image_model
 
 _FIX = "give restorer=onnx:PATH/TO/MODEL.onnx (float32 NCHW RGB in [0, 1] in and out)"
 
@@ -25,24 +26,9 @@ class OnnxRestorer:
     """An ONNX image-to-image model (module docstring); raises NimbusError when it cannot be used."""
 
     def __init__(self, path: str | Path) -> None:
-        import onnxruntime as ort
-
-        self.path = Path(path)
-        if not self.path.is_file():
-            raise NimbusError(f"restorer model {self.path} does not exist; {_FIX}")
-        try:
-            opts = ort.SessionOptions()
-            opts.log_severity_level = 3
-            self.session = ort.InferenceSession(str(self.path), opts, providers=["CPUExecutionProvider"])
-        except Exception as e:  # onnxruntime raises its own exception types for bad files
-            raise NimbusError(f"restorer model {self.path} could not be loaded by onnxruntime ({e}); {_FIX}") from None
-        inputs = self.session.get_inputs()
-        if len(inputs) != 1 or len(inputs[0].shape) != 4:
-            raise NimbusError(f"restorer model {self.path} must take one NCHW image input, has "
-                              f"{[(i.name, i.shape) for i in inputs]}")
-        self.input_name = inputs[0].name
-        shape = inputs[0].shape
-        self.fixed_size = (shape[3], shape[2]) if all(isinstance(s, int) and s > 0 for s in shape[2:]) else None
+        model = open_image_model(path, "restorer model", _FIX, _FIX)
+        self.session, self.input_name, self.fixed_size, self.path = (model.session, model.input_name,
+                                                                     model.fixed_size, model.path)
         self.sha256 = hashlib.sha256(self.path.read_bytes()).hexdigest()
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
