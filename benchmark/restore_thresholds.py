@@ -76,7 +76,7 @@ def _report(rows: list[dict], stat: str, components: str, threshold: float) -> s
 
 
 def main(argv: list[str] | None = None) -> int:
-    from nimbus.restore import HAZE_DARK_MEAN, PARTICLE_ENERGY
+    from nimbus.restore import HAZE_DARK_MEAN, PARTICLE_SHARE
 
     parser = argparse.ArgumentParser(prog="python -m benchmark.restore_thresholds", description=__doc__.split("\n")[0])
     parser.add_argument("--root", default="restore-validation", help="where the validation scenes are (made)")
@@ -87,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
         sub = [r for r in rows if scene in ("all", r["scene"])]
         print(scene)
         print("  " + _report(sub, "dark_mean", "H", HAZE_DARK_MEAN))
-        print("  " + _report(sub, "tophat_energy", "RS", PARTICLE_ENERGY))
+        print("  " + _report(sub, "white_share", "RS", PARTICLE_SHARE))
     return 0
 
 

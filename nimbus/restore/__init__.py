@@ -14,14 +14,15 @@ A restorer is named by a string (``restorer=...``, :func:`parse_restorer`):
     the views as they are (the baseline is then plain 3DGS).
 ``auto`` (default)
     per view, from what the view shows (:func:`image_evidence`): ``dcp`` when its mean dark
-    channel is at least :data:`HAZE_DARK_MEAN`, ``particles`` when its top-hat energy is at
-    least :data:`PARTICLE_ENERGY`, both, or none.
+    channel is at least :data:`HAZE_DARK_MEAN`, ``particles`` when the white share of its
+    bright thin structures is at least :data:`PARTICLE_SHARE`, both, or none.
 ``onnx:PATH``
     a user-supplied image-to-image ONNX model (:class:`nimbus.restore.onnx_model.OnnxRestorer`).
 
 Sizes in pixels scale with the image's short side (:func:`pixel_sizes`): the dark-channel
 patch is He et al.'s 15 px at 400 px (at least 3), the guided filter's window 4 patches, and
-the particle element's half-width 2 px up to 200 px, 1 % of the side above.
+the particle element's half-width 2 px up to 200 px, 1 % of the side above (the statistic's
+element is smaller: 1 px up to 300 px, 0.5 % above, to single out the thinnest structures).
 
 Thresholds of ``auto`` (chosen on validation data, never on test views)
 ------------------------------------------------------------------------
@@ -32,11 +33,10 @@ Reproduce with ``python -m benchmark.restore_thresholds``, which prints the rang
 
 * dark-channel mean: hazy views 0.328..0.685, haze-free views 0.084..0.306 (1176 views);
   :data:`HAZE_DARK_MEAN` = 0.32 separates them with no view wrong.
-* top-hat energy: views with rain or snow 0.0064..0.077, without 0.0018..0.056.  The classes
-  overlap (fine bright texture of the tiny scenes -- flowers, specular edges -- looks like
-  flakes, and haze dims the particles' contrast); :data:`PARTICLE_ENERGY` = 0.009 is the
-  value with the fewest wrong views there (214 of 1176, mostly haze-free views taken for
-  particles).  A wrong ``particles`` costs little (the remover only inpaints what it finds).
+* white share: views with rain or snow 0.61..1.08, without 0.44..0.94;
+  :data:`PARTICLE_SHARE` = 0.76 is the value with the fewest wrong views (88 of 1176).  At
+  ``small`` size (240 x 180) that is 15 of 840; at ``tiny`` (64 x 48), where flowers, leaves
+  and specular edges are as thin as a streak, 73 of 336.  A wrong ``particles`` costs little: the remover only inpaints what it finds.
 """
 
 from __future__ import annotations
@@ -54,12 +54,12 @@ from nimbus.restore.classical import ParticleConfig, RestoreConfig, dehaze, remo
 RESTORERS = ("auto", "dcp", "particles", "dcp+particles", "none")
 #: ``auto``: a view is hazy when the mean of its dark channel is at least this (module docstring).
 HAZE_DARK_MEAN = 0.32
-#: ``auto``: a view holds particles when its top-hat energy (mean over pixels of the top-hat above
-#: :attr:`ParticleConfig.tophat_floor`) is at least this.
-PARTICLE_ENERGY = 0.009
-#: A bright structure counts as a particle when its top-hat in the darkest channel is at least this
+#: ``auto``: a view holds particles when the white share of its bright thin structures
+#: (:func:`image_evidence`) is at least this.
+PARTICLE_SHARE = 0.76
+#: A bright structure counts as white when its top-hat in the darkest channel is at least this
 #: fraction of its top-hat in the brightest (white: 1).
-ACHROMATIC = 0.8
+ACHROMATIC = 0.7
 #: He et al.'s dark-channel patch (15 px) for a 400-px short side.
 _PATCH_PER_PX = 15 / 400
 _MIN_PATCH = 3
@@ -98,12 +98,11 @@ def pixel_sizes(height: int, width: int) -> tuple[RestoreConfig, ParticleConfig]
 
 @dataclass(frozen=True)
 class ImageEvidence:
-    """What ``auto`` sees in one view: ``dark_mean`` (mean dark channel, [0, 1]), ``tophat_energy``
-    (mean over pixels of the channel minimum's white top-hat above the floor, counted where it is
-    achromatic, [0, 1]), and the decisions."""
+    """What ``auto`` sees in one view: ``dark_mean`` (mean dark channel, [0, 1]), ``white_share`` (the
+    white share of the bright thin structures, about [0, 1]: :func:`image_evidence`), and the decisions."""
 
     dark_mean: float
-    tophat_energy: float
+    white_share: float
     haze: bool
     particles: bool
 
@@ -112,15 +111,21 @@ class ImageEvidence:
 
 
 def image_evidence(image: np.ndarray) -> ImageEvidence:
-    """The haze and particle statistics of ``image`` (H, W, 3) float32 in [0, 1] and ``auto``'s decisions."""
-    dcp, particles = pixel_sizes(*image.shape[:2])
+    """The haze and particle statistics of ``image`` (H, W, 3) float32 in [0, 1] and ``auto``'s decisions.
+
+    ``white_share``: of the bright thin structures' top-hat in the brightest channel (everything
+    brighter than its surroundings and narrower than the element), the share that white pixels
+    carry in the darkest channel.  Rain and snow are white and add to every channel alike; a
+    flower, a leaf or a red light is bright in one or two.  A share, not an energy, so the
+    texture's own contrast and haze's loss of contrast cancel out.
+    """
+    dcp, _ = pixel_sizes(*image.shape[:2])
     dark = float(dark_channel_hard(torch.from_numpy(np.ascontiguousarray(image, np.float32)), dcp.patch).mean())
-    th = white_tophat(image.min(axis=-1), particles.size)
-    # Only achromatic structures count: a bright flower or a red light has a much larger top-hat in
-    # its brightest channel than in its darkest; a white streak or flake has about the same in all.
-    white = th >= ACHROMATIC * white_tophat(image.max(axis=-1), particles.size)
-    energy = float((np.maximum(th - particles.tophat_floor, 0.0) * white).mean())
-    return ImageEvidence(dark, energy, dark >= HAZE_DARK_MEAN, energy >= PARTICLE_ENERGY)
+    size = max(1, int(round(min(image.shape[:2]) / 200)))
+    th_min, th_max = white_tophat(image.min(axis=-1), size), white_tophat(image.max(axis=-1), size)
+    total = float(th_max.sum())
+    share = float((th_min * (th_min >= ACHROMATIC * th_max)).sum()) / total if total > 0 else 0.0
+    return ImageEvidence(dark, share, dark >= HAZE_DARK_MEAN, share >= PARTICLE_SHARE)
 
 
 class Restorer:
