@@ -12,7 +12,6 @@ from nimbus.errors import NimbusError
 from nimbus.methods.registry import get_method
 from nimbus.restore import Restorer, image_evidence, parse_restorer
 from nimbus.restore.classical import ParticleConfig, RestoreConfig, dehaze, remove_particles
-from nimbus.train.checkpoint import CHECKPOINT
 from nimbus.train.runner import Runner
 
 
@@ -169,7 +168,7 @@ def _config(**kw):
     return apply_overrides(cfg, {"iterations": "12", "checkpoint_interval": "6", **kw})
 
 
-def test_trains_on_restored_views_through_the_runner_and_resumes(hazy_scene, tmp_path):
+def test_trains_on_restored_views_through_the_runner_and_resumes(hazy_scene, tmp_path, interrupt_and_resume):
     full = Runner("restore-3dgs", hazy_scene, _config(), tmp_path / "full", seed=1, progress=False,
                   device=torch.device("cpu"))
     method = full.method
@@ -179,21 +178,9 @@ def test_trains_on_restored_views_through_the_runner_and_resumes(hazy_scene, tmp
     np.testing.assert_array_equal(method.train_images[0].cpu().numpy(), restored)
     full_out = full.run()
 
-    half = Runner("restore-3dgs", hazy_scene, _config(), tmp_path / "half", seed=1, progress=False,
-                  device=torch.device("cpu"))
-    step = half.method.train_iteration
-
-    def interrupted(it):
-        if it == 8:  # Ctrl-C after step 7, between checkpoints: the interrupt saves the state
-            raise KeyboardInterrupt
-        return step(it)
-
-    half.method.train_iteration = interrupted
-    with pytest.raises(KeyboardInterrupt):
-        half.run()
-    resumed = Runner("restore-3dgs", hazy_scene, _config(), tmp_path / "half", seed=1, progress=False,
-                     device=torch.device("cpu"))
-    resumed.load_checkpoint(tmp_path / "half" / CHECKPOINT)
+    # Ctrl-C after step 7, between the checkpoints at 6 and 12
+    resumed = interrupt_and_resume(lambda: Runner("restore-3dgs", hazy_scene, _config(), tmp_path / "half", seed=1,
+                                                  progress=False, device=torch.device("cpu")), 7)
     assert resumed.iteration == 7
     out = resumed.run()
     assert out["psnr"] == full_out["psnr"] and out["ssim"] == full_out["ssim"]
