@@ -86,6 +86,9 @@ M_INIT_VARIANTS = (1000, 2000, 4000, 10_000, 15_000)
 
 _SPECS = [
     MethodSpec("3dgs", "vanilla 3D Gaussian Splatting (Inria defaults)", "nimbus.methods.gs3d:GaussianSplatting"),
+    MethodSpec("restore-3dgs", "two-stage baseline: each training view restored in 2D (dark-channel dehazing, "
+               "particle removal or an ONNX model), then 3DGS", "nimbus.methods.restore_3dgs:RestoreThen3DGS",
+               "nimbus.methods.restore_3dgs:preset"),
     _nimbus("nimbus", "NimbusGS; components (CSM / PLM / GGS) chosen from the input views"),
     _nimbus("nimbus-full", "NimbusGS with every component forced on", components=FULL),
     _nimbus("nimbus-no-csm", "NimbusGS without continuous scattering modelling", components="plm,ggs"),
