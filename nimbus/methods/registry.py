@@ -86,6 +86,9 @@ M_INIT_VARIANTS = (1000, 2000, 4000, 10_000, 15_000)
 
 _SPECS = [
     MethodSpec("3dgs", "vanilla 3D Gaussian Splatting (Inria defaults)", "nimbus.methods.gs3d:GaussianSplatting"),
+    MethodSpec("robust-3dgs", "3DGS whose loss drops outlier pixels (residual above a running quantile, voted, "
+               "dilated): transients, rain, snow", "nimbus.methods.robust_3dgs:Robust3DGS",
+               "nimbus.methods.robust_3dgs:preset"),
     _nimbus("nimbus", "NimbusGS; components (CSM / PLM / GGS) chosen from the input views"),
     _nimbus("nimbus-full", "NimbusGS with every component forced on", components=FULL),
     _nimbus("nimbus-no-csm", "NimbusGS without continuous scattering modelling", components="plm,ggs"),
