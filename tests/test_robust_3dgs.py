@@ -104,7 +104,7 @@ def _method(scene, **kw):
 
 
 def test_no_masking_during_the_warm_up_then_masking(scene):
-    method = _method(scene, outlier_warmup=0.5)
+    method = _method(scene, outlier_warmup=0.5, outlier_quantile=0.85)
     assert method.cfg.warmup_steps == 10
     render, target, streaks = _render_and_streaked_target(scene)
     for step in range(1, 11):
@@ -189,3 +189,53 @@ def test_robust_3dgs_resumes_to_the_same_result(scene, tmp_path):
     assert resumed.iteration == 6 and resumed.method.threshold == half.method.threshold
     out = resumed.run()
     assert out["psnr"] == full["psnr"] and out["robust"] == full["robust"]
+
+
+def _with_occluder(scene, seed: int, size: int = 14):
+    """``scene`` with the same checkered occluder (size x size px) pasted at a random place of every training view;
+    and the occluder's mask per training view."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:size, :size]
+    patch = np.where(((yy // 3 + xx // 3) % 2)[..., None] == 0, [1.0, 0.1, 0.9], [0.1, 0.9, 0.2]).astype(np.float32)
+    views, masks = [], []
+    for v in scene.views:
+        if v.name in scene.test_names:
+            views.append(v)
+            continue
+        img = v.load_image().copy()
+        y, x = rng.integers(0, img.shape[0] - size + 1), rng.integers(0, img.shape[1] - size + 1)
+        img[y:y + size, x:x + size] = patch
+        occ = np.zeros(img.shape[:2], dtype=bool)
+        occ[y:y + size, x:x + size] = True
+        views.append(dataclasses.replace(v, image=img, image_path=None))
+        masks.append(occ)
+    return scene.with_views(views), masks
+
+
+@pytest.mark.slow
+def test_on_pasted_transients_the_trained_mask_drops_the_occluder_and_3dgs_is_no_better(tmp_path):
+    """Street (tiny, 300 iterations), a 14 px occluder (6 % of a view) pasted at random places.
+
+    After training, the mask of each training view (final model, final threshold) holds the occluder
+    and little else.  Test PSNR: robust-3dgs minus 3DGS was +0.26, +0.09, -0.35 dB on seeds 0, 1, 2
+    (the occluder costs 3DGS about 0.4 dB here, the trimmed pixels cost robust-3dgs about as much), so
+    only "not worse by more than 0.5 dB" is asserted, not a win.
+    """
+    scene, occluders = _with_occluder(render_builtin("street", size="tiny", seed=0), seed=0)
+    runs = {m: Runner(m, scene, get_method(m).preset("tiny"), tmp_path / m, seed=0, progress=False,
+                      checkpoints=False) for m in ("3dgs", "robust-3dgs")}
+    results = {m: r.run() for m, r in runs.items()}
+    method = runs["robust-3dgs"].method
+    c = method.cfg
+    hits = flagged = total = 0
+    with torch.no_grad():
+        for view, image, occ in zip(method.train_views, method.train_images, occluders):
+            r = pixel_residuals(method.render(view.camera)["rgb"], image)
+            o = outlier_mask(r, method.threshold, vote_patch=c.vote_patch, vote_threshold=c.vote_threshold,
+                             dilation=c.outlier_dilation)
+            occ = torch.from_numpy(occ)
+            hits, flagged, total = hits + int((o & occ).sum()), flagged + int(o.sum()), total + int(occ.sum())
+    print(f"recall {hits / total:.2f} precision {hits / flagged:.2f} psnr {results['robust-3dgs']['psnr']:.2f} "
+          f"vs {results['3dgs']['psnr']:.2f}")
+    assert hits / total > 0.8 and hits / flagged > 0.6
+    assert results["robust-3dgs"]["psnr"] > results["3dgs"]["psnr"] - 0.5

@@ -50,12 +50,17 @@ REPORT_TAIL = 0.1
 class RobustConfig(TrainConfig):
     """3DGS training (:class:`~nimbus.train.config.TrainConfig`) plus the outlier mask's settings.
 
-    Defaults follow RobustNeRF (3x3 vote at 0.5) with a trimmed share closer to the
-    transient fraction of weather (``outlier_quantile`` 0.85 rather than its median: a
-    rain or snow layer covers a few to 15 % of a view) and SpotLessSplats' warm-up.
-    They were chosen by reading those papers, not tuned on the benchmark's test views.
+    Defaults follow RobustNeRF (3x3 vote at 0.5) and SpotLessSplats (a warm-up), with a
+    small trimmed share: ``outlier_quantile`` 0.95, not RobustNeRF's median nor 0.8-0.9.
+    On the tiny street scene with an occluder pasted into each training view (300
+    iterations), 0.9 cost 1.6 dB of test PSNR against 3DGS (6 % occluder) and 0.85 cost
+    1.1 dB (13 % occluder): a short run has not fitted the scene's fine detail yet, the
+    trimmed rule drops exactly those pixels, and what never enters the loss is never
+    fitted.  0.95 was level with 3DGS there (+0.26, +0.09, -0.35 dB on seeds 0-2); the
+    price is that it drops less of a rain or snow layer than the layer covers.  Nothing
+    was tuned on the benchmark's views.
 
-    ``outlier_quantile`` (0.85): residuals above the running q-quantile are outlier
+    ``outlier_quantile`` (0.95): residuals above the running q-quantile are outlier
     candidates; 1 never masks (plain 3DGS).  ``outlier_warmup`` (0.1): the first share of
     the iterations trains on every valid pixel.  ``vote_patch`` (3, odd; 1: no vote) and
     ``vote_threshold`` (0.5): the neighbourhood vote of the inlier mask.
@@ -64,7 +69,7 @@ class RobustConfig(TrainConfig):
     exponential moving average.
     """
 
-    outlier_quantile: float = 0.85
+    outlier_quantile: float = 0.95
     outlier_warmup: float = 0.1
     vote_patch: int = 3
     vote_threshold: float = 0.5
