@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from nimbus.cli.train import _main as train_main
 from nimbus.config_set import apply_overrides
 from nimbus.data.builtin import render_builtin
 from nimbus.errors import NimbusError
@@ -172,24 +173,37 @@ def test_robust_3dgs_trains_through_the_runner_and_reports_the_masked_fraction(s
 
 
 def test_robust_3dgs_resumes_to_the_same_result(scene, tmp_path):
+    """The running threshold and the mask statistics are checkpointed: a run stopped after step 6 (between
+    checkpoints; the interrupt saves the state) and resumed ends exactly where an uninterrupted one does."""
     full = Runner("robust-3dgs", scene, _cfg(), tmp_path / "full", seed=2, progress=False).run()
-    half = Runner("robust-3dgs", scene, _cfg(), tmp_path / "half", seed=2, progress=False)
-    step = half.method.train_iteration
 
-    def interrupted(it):
-        if it == 7:  # Ctrl-C after step 6, between checkpoints: the interrupt saves the state
+    def ctrl_c_after_step_6(record):
+        if record["iteration"] == 6:
             raise KeyboardInterrupt
-        return step(it)
 
-    half.method.train_iteration = interrupted
+    half = Runner("robust-3dgs", scene, _cfg(), tmp_path / "half", seed=2, progress=False, on_log=ctrl_c_after_step_6)
     with pytest.raises(KeyboardInterrupt):
         half.run()
     resumed = Runner("robust-3dgs", scene, _cfg(), tmp_path / "half", seed=2, progress=False)
     resumed.load_checkpoint(tmp_path / "half" / CHECKPOINT)
-    assert resumed.iteration == 6 and resumed.method.threshold == half.method.threshold
+    assert resumed.iteration == 6 and resumed.method.threshold == half.method.threshold is not None
     out = resumed.run()
     assert out["psnr"] == full["psnr"] and out["robust"] == full["robust"]
 
+
+def test_robust_3dgs_is_a_method_of_nimbus_train_with_its_settings(tmp_path):
+    out = tmp_path / "cli"
+    args = ["--set", "iterations=4", "--set", "checkpoint_interval=2", "--set", "outlier_quantile=0.9",
+            "--set", "outlier_warmup=0.5", "--quiet"]
+    assert train_main(["builtin:garden:tiny", "--method", "robust-3dgs", "--preset", "tiny", *args,
+                       "--out", str(out)]) == 0
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["method"] == "robust-3dgs" and saved["config"]["outlier_quantile"] == 0.9
+    assert json.loads((out / "results.json").read_text())["robust"]["masked_steps"] == 2
+    assert train_main(["--resume", str(out), "--quiet"]) == 0  # config.json rebuilds a RobustConfig
+    with pytest.raises(NimbusError, match="vote_patch=2: .* must be odd"):
+        train_main(["builtin:garden:tiny", "--method", "robust-3dgs", "--set", "vote_patch=2",
+                    "--out", str(tmp_path / "bad"), "--quiet"])
 
 def _with_occluder(scene, seed: int, size: int = 14):
     """``scene`` with the same checkered occluder (size x size px) pasted at a random place of every training view;
