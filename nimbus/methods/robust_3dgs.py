@@ -35,7 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from nimbus.config_validation import Limit, at_least, between, fraction
+from nimbus.config_validation import Limit, between, fraction
 from nimbus.errors import NimbusError
 from nimbus.losses import photometric_loss
 from nimbus.methods.gs3d import GaussianSplatting
@@ -113,7 +113,7 @@ def pixel_residuals(pred: Tensor, gt: Tensor) -> Tensor:
 def residual_quantile(residual: Tensor, q: float, valid: Tensor | None = None) -> float:
     """The ``q``-quantile (lower value) of ``residual`` ``[H, W]`` over the ``valid`` pixels (None: all).
 
-    ``kthvalue`` rather than ``torch.quantile``: the latter refuses more than 2^24 values (a 4K image).
+    ``kthvalue`` rather than ``torch.quantile``: the latter refuses more than 2^24 values (a 24-megapixel photo).
     """
     values = residual.reshape(-1) if valid is None else residual[valid]
     k = min(max(math.ceil(q * values.numel()), 1), values.numel())
