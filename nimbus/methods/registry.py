@@ -89,6 +89,9 @@ _SPECS = [
     MethodSpec("restore-3dgs", "two-stage baseline: each training view restored in 2D (dark-channel dehazing, "
                "particle removal or an ONNX model), then 3DGS", "nimbus.methods.restore_3dgs:RestoreThen3DGS",
                "nimbus.methods.restore_3dgs:preset"),
+    MethodSpec("robust-3dgs", "3DGS whose loss drops outlier pixels (residual above a running quantile, voted, "
+               "dilated): transients, rain, snow", "nimbus.methods.robust_3dgs:Robust3DGS",
+               "nimbus.methods.robust_3dgs:preset"),
     _nimbus("nimbus", "NimbusGS; components (CSM / PLM / GGS) chosen from the input views"),
     _nimbus("nimbus-full", "NimbusGS with every component forced on", components=FULL),
     _nimbus("nimbus-no-csm", "NimbusGS without continuous scattering modelling", components="plm,ggs"),
