@@ -69,6 +69,20 @@ def store_path(root: str | os.PathLike) -> Path:
     return Path(root) / STORE_FILE
 
 
+def require_store(root: str | os.PathLike) -> Path:
+    """``ROOT/results.jsonl``, or NimbusError with what to do when it is missing or unreadable."""
+    root, store = Path(root), store_path(root)
+    try:
+        if root.exists() and not root.is_dir():
+            raise NimbusError(f"--root {root} is a file; give the benchmark folder that holds results.jsonl")
+        if not store.is_file():
+            raise NimbusError(f"{store} does not exist; run `nimbus-bench run --root {root}` first")
+    except PermissionError:
+        raise NimbusError(f"--root {root} cannot be read (permission denied); give read access or choose another "
+                          "--root") from None
+    return store
+
+
 def counting_records(records: Iterator[dict] | list[dict]) -> dict[str, dict]:
     """The record that counts for each cell, by ``cell_id`` (module docstring, "Which record counts").
 

@@ -62,3 +62,30 @@ def _assert_same_scene(a: Scene, b: Scene, atol: float = 1e-9) -> None:
 def assert_same_scene():
     """``assert_same_scene(a, b, atol=1e-9)``: two scenes have the same views, cameras, split and points."""
     return _assert_same_scene
+
+
+def _interrupt_and_resume(make_runner, after: int):
+    """``make_runner()`` run until Ctrl-C after step ``after`` (between checkpoints: the interrupt saves the
+    state), then a fresh ``make_runner()`` loaded from that checkpoint (the same run folder): the resumed runner."""
+    from nimbus.train.checkpoint import CHECKPOINT
+
+    half = make_runner()
+    step = half.method.train_iteration
+
+    def interrupted(it):
+        if it == after + 1:
+            raise KeyboardInterrupt
+        return step(it)
+
+    half.method.train_iteration = interrupted
+    with pytest.raises(KeyboardInterrupt):
+        half.run()
+    resumed = make_runner()
+    resumed.load_checkpoint(half.out / CHECKPOINT)
+    return resumed
+
+
+@pytest.fixture
+def interrupt_and_resume():
+    """``interrupt_and_resume(make_runner, after)``: a run interrupted after step ``after``, resumed (see above)."""
+    return _interrupt_and_resume

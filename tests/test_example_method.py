@@ -56,21 +56,11 @@ def test_the_example_implements_the_protocol_and_trains_renders_and_writes_outpu
     assert not torch.equal(after["rgb"], before["rgb"])  # the colours were learned
 
 
-def test_the_example_resumes_to_the_same_result(scene, tmp_path):
+def test_the_example_resumes_to_the_same_result(scene, tmp_path, interrupt_and_resume):
     full = Runner("example", scene, _cfg(), tmp_path / "full", seed=2, progress=False).run()
-    half = Runner("example", scene, _cfg(), tmp_path / "half", seed=2, progress=False)
-    step = half.method.train_iteration
-
-    def interrupted(it):
-        if it == 6:  # Ctrl-C after step 5, between checkpoints: the interrupt saves the state
-            raise KeyboardInterrupt
-        return step(it)
-
-    half.method.train_iteration = interrupted
-    with pytest.raises(KeyboardInterrupt):
-        half.run()
-    resumed = Runner("example", scene, _cfg(), tmp_path / "half", seed=2, progress=False)
-    resumed.load_checkpoint(tmp_path / "half" / CHECKPOINT)
+    # Ctrl-C after step 5, between checkpoints: the interrupt saves the state
+    resumed = interrupt_and_resume(lambda: Runner("example", scene, _cfg(), tmp_path / "half", seed=2,
+                                                  progress=False), 5)
     assert resumed.iteration == 5
     out = resumed.run()
     assert out["psnr"] == full["psnr"] and out["ssim"] == full["ssim"]

@@ -18,7 +18,7 @@ from nimbus.nimbusgs.losses import dcp_loss, soft_dark_channel
 from nimbus.nimbusgs.particulate import (ResidualStore, ViewGeometry, consistency_excess, extract_residual,
                                          is_refresh_step, neighbours, particle_mask, tophat_window,
                                          white_tophat)
-from nimbus.nimbusgs.restore import classical_restore
+from nimbus.restore.classical import classical_restore
 from nimbus.nimbusgs.scattering import (Box, ExtinctionGrid, UniformExtinction, camera_rays, density_scale_for,
                                         gaussian_extinction_map, march, march_interval, ray_box_interval,
                                         surface_in_box)

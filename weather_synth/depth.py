@@ -57,6 +57,7 @@ from nimbus.data.camera import Camera
 from nimbus.data.scene import Scene, View
 from nimbus.errors import NimbusError
 from nimbus.utils.fs import cache_root
+from nimbus.utils.onnx_session import open_image_model
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
@@ -318,27 +319,11 @@ class OnnxDepthModel:
     """
 
     def __init__(self, path: str | Path, input_size: int = 518) -> None:
-        import onnxruntime as ort
-
-        path = Path(path)
-        if not path.is_file():
-            raise NimbusError(f"depth model {path} does not exist; give --depth onnx:PATH/TO/MODEL.onnx")
-        try:
-            opts = ort.SessionOptions()
-            opts.log_severity_level = 3
-            self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-        except Exception as e:  # onnxruntime raises its own exception types for bad files
-            raise NimbusError(f"depth model {path} could not be loaded by onnxruntime ({e}); "
-                              "export it with opset >= 11") from None
-        inputs = self.session.get_inputs()
-        if len(inputs) != 1 or len(inputs[0].shape) != 4:
-            raise NimbusError(f"depth model {path} must take one NCHW image input, has "
-                              f"{[(i.name, i.shape) for i in inputs]}")
-        self.input_name = inputs[0].name
-        shape = inputs[0].shape
-        self.fixed_size = (shape[3], shape[2]) if all(isinstance(s, int) and s > 0 for s in shape[2:]) else None
+        model = open_image_model(path, "depth model", "give --depth onnx:PATH/TO/MODEL.onnx",
+                                 "export it with opset >= 11")
+        self.session, self.input_name, self.fixed_size, self.path = (model.session, model.input_name,
+                                                                     model.fixed_size, model.path)
         self.input_size = int(input_size)
-        self.path = path
 
     def input_resolution(self, width: int, height: int) -> tuple[int, int]:
         """(width, height) fed to the model: its fixed size, or the short side ~ input_size, multiples of 14."""

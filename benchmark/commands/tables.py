@@ -61,19 +61,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from benchmark.grid import DEFAULT_METHODS
-    from benchmark.store import export_parquet, load_results, store_path
+    from benchmark.store import export_parquet, load_results, require_store
     from benchmark.tables.writer import Written, with_paper, write_tables
     from nimbus.utils.fs import check_output_dir, refuse_overlap
 
-    root, store = Path(args.root), store_path(args.root)
-    try:
-        if root.exists() and not root.is_dir():
-            raise NimbusError(f"--root {root} is a file; give the benchmark folder that holds results.jsonl")
-        if not store.is_file():
-            raise NimbusError(f"{store} does not exist; run `nimbus-bench run --root {args.root}` first")
-    except PermissionError:
-        raise NimbusError(f"--root {root} cannot be read (permission denied); give read access or choose another "
-                          "--root") from None
+    store = require_store(args.root)
     # The tables fill --out file by file (other files there stay), so a used folder is fine; but
     # it must be writable, and neither it nor --parquet may be or hold the store they are made from.
     check_output_dir(args.out, overwrite=True, inputs=[store], flag="--out")

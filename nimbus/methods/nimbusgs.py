@@ -55,7 +55,7 @@ from nimbus.nimbusgs.degradation import (DEHAZE_MIN_TRANSMISSION, INIT_TRANSMISS
 from nimbus.nimbusgs.ggs import GGSFactors, ggs_weights, scale_gradients
 from nimbus.nimbusgs.losses import dcp_loss, stage_loss
 from nimbus.nimbusgs.particulate import ViewGeometry, is_refresh_step
-from nimbus.nimbusgs.restore import RestoreConfig, classical_restore
+from nimbus.restore.classical import RestoreConfig, classical_restore
 from nimbus.nimbusgs.scattering import Box, ExtinctionGrid, ViewRays, camera_rays
 from nimbus.render.gaussians import Gaussians
 from nimbus.render.rasterize import rasterize

@@ -86,6 +86,12 @@ M_INIT_VARIANTS = (1000, 2000, 4000, 10_000, 15_000)
 
 _SPECS = [
     MethodSpec("3dgs", "vanilla 3D Gaussian Splatting (Inria defaults)", "nimbus.methods.gs3d:GaussianSplatting"),
+    MethodSpec("restore-3dgs", "two-stage baseline: each training view restored in 2D (dark-channel dehazing, "
+               "particle removal or an ONNX model), then 3DGS", "nimbus.methods.restore_3dgs:RestoreThen3DGS",
+               "nimbus.methods.restore_3dgs:preset"),
+    MethodSpec("robust-3dgs", "3DGS whose loss drops outlier pixels (residual above a running quantile, voted, "
+               "dilated): transients, rain, snow", "nimbus.methods.robust_3dgs:Robust3DGS",
+               "nimbus.methods.robust_3dgs:preset"),
     MethodSpec("medium-3dgs", "3DGS in a learned homogeneous medium (per-channel attenuation and backscatter)",
                "nimbus.methods.medium_3dgs:Medium3DGS", "nimbus.methods.medium_3dgs:preset"),
     _nimbus("nimbus", "NimbusGS; components (CSM / PLM / GGS) chosen from the input views"),

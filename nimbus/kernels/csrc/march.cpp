@@ -93,6 +93,23 @@ inline VoxelRay<T> voxel_ray(const Grid<T>& g, const T* o, const T* d, T t0, T d
   return v;
 }
 
+// The rays of one call (forward and backward read them alike): origin o [3], unit directions d [P, 3] and
+// intervals [t0, t1] [P]; ray r is sampled at `samples` midpoints of step `step(r)`.
+template <typename T>
+struct Rays {
+  const T* o;
+  const T* d;
+  const T* t0;
+  const T* t1;
+  int64_t samples;
+  Rays(const at::Tensor& origin, const at::Tensor& dirs, const at::Tensor& t_start, const at::Tensor& t_end,
+       int64_t samples_)
+      : o(origin.data_ptr<T>()), d(dirs.data_ptr<T>()), t0(t_start.data_ptr<T>()), t1(t_end.data_ptr<T>()),
+        samples(samples_) {}
+  T step(int64_t r) const { return std::max(t1[r] - t0[r], T(0)) / T(samples); }
+  VoxelRay<T> voxels(const Grid<T>& g, int64_t r, T ds) const { return voxel_ray(g, o, d + 3 * r, t0[r], ds); }
+};
+
 // Locates sample i of the ray; false when it lies outside the box.
 template <typename T>
 inline bool locate(const Grid<T>& g, const VoxelRay<T>& ray, int64_t i, Cell<T>& c) {
@@ -238,18 +255,15 @@ at::Tensor march_forward(const at::Tensor& features, const at::Tensor& origin, c
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "march_forward", [&] {
     using T = scalar_t;
     const Grid<T> g = make_grid<T>(features, lo, hi);
-    const T* o = origin.data_ptr<T>();
-    const T* d = dirs.data_ptr<T>();
-    const T* t0 = t_start.data_ptr<T>();
-    const T* t1 = t_end.data_ptr<T>();
+    const Rays<T> rays(origin, dirs, t_start, t_end, samples);
     T* S = out.data_ptr<T>();
     at::parallel_for(0, P, kForwardGrain, [&](int64_t b, int64_t e) {
       Cell<T> c;
       T f[kChunk];
       for (int64_t r = b; r < e; ++r) {
-        const T ds = std::max(t1[r] - t0[r], T(0)) / T(samples);
+        const T ds = rays.step(r);
         T acc = 0;
-        const VoxelRay<T> ray = voxel_ray(g, o, d + 3 * r, t0[r], ds);
+        const VoxelRay<T> ray = rays.voxels(g, r, ds);
         for (int64_t i0 = 0; i0 < samples; i0 += kChunk) {
           int n = 0;
           for (int64_t i = i0; i < std::min<int64_t>(samples, i0 + kChunk); ++i) {
@@ -280,10 +294,7 @@ at::Tensor march_backward(const at::Tensor& features, const at::Tensor& origin, 
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "march_backward", [&] {
     using T = scalar_t;
     const Grid<T> g = make_grid<T>(features, lo, hi);
-    const T* o = origin.data_ptr<T>();
-    const T* d = dirs.data_ptr<T>();
-    const T* t0 = t_start.data_ptr<T>();
-    const T* t1 = t_end.data_ptr<T>();
+    const Rays<T> rays(origin, dirs, t_start, t_end, samples);
     const T* gS = grad_out.data_ptr<T>();
     T* out = grad.data_ptr<T>();
     // Worker 0 writes into the result; the others into their own grids, zeroed by their owner.
@@ -296,10 +307,10 @@ at::Tensor march_backward(const at::Tensor& features, const at::Tensor& origin, 
         if (w > 0) std::fill(acc, acc + V, T(0));
         const int64_t rb = P * w / workers, re = P * (w + 1) / workers;
         for (int64_t r = rb; r < re; ++r) {
-          const T ds = std::max(t1[r] - t0[r], T(0)) / T(samples);
+          const T ds = rays.step(r);
           const T coef = gS[r] * ds;
           if (coef == T(0)) continue;
-          const VoxelRay<T> ray = voxel_ray(g, o, d + 3 * r, t0[r], ds);
+          const VoxelRay<T> ray = rays.voxels(g, r, ds);
           for (int64_t i0 = 0; i0 < samples; i0 += kChunk) {
             int n = 0;
             for (int64_t i = i0; i < std::min<int64_t>(samples, i0 + kChunk); ++i) {

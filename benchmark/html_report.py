@@ -1,0 +1,633 @@
+"""The benchmark's HTML report (``nimbus-bench report``): one static page and its thumbnails for a results store.
+
+Written into ``OUT``::
+
+    OUT/index.html      one self-contained page: inline CSS and JavaScript, no network, opens from disk
+    OUT/images/         downscaled thumbnails (JPEG, at most :data:`THUMB_WIDTH` px wide) and their
+                        difference-to-clean versions; the trade-off plot when the store has one
+
+Sections:
+
+* **Summary**: per weather setting x method, the mean PSNR / SSIM / LPIPS / training time over the
+  finished cells (every scene and seed, as ``nimbus-bench run`` prints it), with cell and error
+  counts; best and second best marked per setting; sortable by clicking a column head.
+* **Test views**: per scene and setting, a few test views (:attr:`ReportOptions.views`, evenly
+  spaced over the split): the degraded input, each cell's render, the clean view, each captioned
+  with its PSNR against the clean view (the record's per-view value where it has one, else computed
+  here with the benchmark's protocol, :func:`nimbus.metrics.peak_signal_noise_ratio`).  Clicking an
+  image enlarges it; a switch shows ``|image - clean| x`` :data:`DIFF_GAIN` instead.
+* **NimbusGS**: for every cell whose run folder holds a NimbusGS record, the component decision
+  (``auto`` or forced) with its evidence (``results.json``), and the decomposition I_in | clean
+  render | T | P | R of a few training views (``decomposition/*.png``, written by
+  :meth:`nimbus.methods.nimbusgs.NimbusGS.write_outputs`).
+* **Trade-off** and **stability**: the files ``nimbus-bench tradeoff`` / ``stability`` wrote, when
+  found in ``ROOT/`` or ``ROOT/*/`` (or given): the Pareto plot and the tables.
+* **Provenance**: the commands that reproduce the cells (rebuilt from the records: the store keeps
+  no command lines), seeds, protocols, software versions, and every cell's record in brief.
+
+Full-size images are links into the store (relative to ``OUT``, so the page and the store move
+together), or copies with ``copy_full``; the thumbnails keep a 3-scene x 7-setting x 6-method store
+to a few MB.  The page is built in a temporary folder and renamed into place
+(:func:`nimbus.utils.fs.atomic_dir`).
+"""
+
+from __future__ import annotations
+
+import csv
+import html
+import json
+import math
+import os
+import shlex
+import shutil
+import warnings
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Iterable, Sequence
+from urllib.parse import quote
+
+import numpy as np
+
+from benchmark.tables.model import Block, Column, Row, Table, finite
+from benchmark.tables.results import METRIC_COLUMNS, finished, labelled, ordered, protocols
+from nimbus.errors import NimbusError
+
+PAGE = "index.html"
+IMAGES = "images"
+#: Thumbnails are at most this wide (never enlarged), a little more than they are shown (160 px): a 3-scene x
+#: 7-setting x 6-method store of 320 x 240 views made a 4.7 MB report (2 views a setting; noisy stand-in renders,
+#: the worst case for JPEG).
+THUMB_WIDTH = 192
+JPEG_QUALITY = 80
+#: ``|image - clean|`` (mean over the channels) is multiplied by this in the difference thumbnails, so
+#: small errors show; they are grey, at a lower quality (their noise-like detail makes most of the bytes).
+DIFF_GAIN = 4.0
+DIFF_JPEG_QUALITY = 70
+#: Test views shown per scene and setting, by default.
+DEFAULT_VIEWS = 2
+#: Training views whose decomposition is shown per NimbusGS cell.
+DECOMPOSITION_VIEWS = 3
+DECOMPOSITION_PANELS = ("input I_in", "clean render", "transmission T", "airlight P", "residual R")
+TRADEOFF_FILES = ("tradeoff.csv", "tradeoff.png", "tradeoff.md")
+STABILITY_FILES = ("stability.csv", "stability.md", "stability.json")
+#: Columns of the summary besides PSNR / SSIM / LPIPS.
+TIME_COLUMN = Column("train_time_s", "Train s↓", "Train s", 1, higher_is_better=False)
+COUNT_COLUMNS = (Column("cells", "Cells", "Cells"), Column("errors", "Errors", "Errors"))
+SUMMARY_COLUMNS = (*METRIC_COLUMNS, TIME_COLUMN, *COUNT_COLUMNS)
+MARK_CLASS = {1: "best", 2: "second"}
+
+
+@dataclass(frozen=True)
+class ReportOptions:
+    """What the report shows and how.
+
+    Attributes
+    ----------
+    views : int
+        Test views per scene and setting (evenly spaced over the split; all when fewer).
+    thumb_width : int
+        Largest thumbnail width in pixels.
+    copy_full : bool
+        Copy the full-size images into ``OUT/images/full/`` (a portable report, larger) instead of
+        linking to them in the store.
+    tradeoff, stability : path or None
+        Folders of ``nimbus-bench tradeoff`` / ``stability`` outputs; None: look in ``ROOT/`` and ``ROOT/*/``.
+    method_order : tuple of str
+        Methods listed first (rows of the summary, columns of the view grids).
+    """
+
+    views: int = DEFAULT_VIEWS
+    thumb_width: int = THUMB_WIDTH
+    copy_full: bool = False
+    tradeoff: Path | None = None
+    stability: Path | None = None
+    method_order: tuple[str, ...] = ()
+
+
+def e(text) -> str:
+    """HTML-escaped text."""
+    return html.escape(str(text), quote=True)
+
+
+def url(path: str | os.PathLike) -> str:
+    """A relative path as an escaped URL (``+``, spaces and ``%`` in file names survive)."""
+    return e(quote(Path(path).as_posix()))
+
+
+# --- the store -------------------------------------------------------------------------------
+def found_outputs(root: Path, given: Path | None, files: Sequence[str], flag: str) -> list[Path]:
+    """Folders holding ``files[0]``: ``given`` (NimbusError when it has none), else ``ROOT`` and ``ROOT/*``."""
+    if given is not None:
+        if not (Path(given) / files[0]).is_file():
+            raise NimbusError(f"{flag} {given} holds no {files[0]}; give the --out folder of that command")
+        return [Path(given)]
+    return sorted({p.parent for p in [root / files[0], *root.glob(f"*/{files[0]}")] if p.is_file()})
+
+
+# --- images ----------------------------------------------------------------------------------
+class ImageWriter:
+    """Writes thumbnails under ``tmp/images`` and names full-size images as seen from the final ``out``."""
+
+    def __init__(self, tmp: Path, out: Path, width: int, copy_full: bool) -> None:
+        self.tmp, self.out, self.width, self.copy_full = tmp, out.resolve(), width, copy_full
+        self.written: list[str] = []
+
+    def thumb(self, name: str, img: np.ndarray, quality: int = JPEG_QUALITY) -> str:
+        """Write ``img`` (float RGB or grey (H, W), [0, 1]) as ``images/<name>.jpg``, at most :attr:`width` wide;
+        its src."""
+        import cv2
+
+        from nimbus.data.images import to_uint8
+
+        h, w = img.shape[:2]
+        if w > self.width:
+            img = cv2.resize(img, (self.width, max(1, round(h * self.width / w))), interpolation=cv2.INTER_AREA)
+        pixels = to_uint8(img) if img.ndim == 2 else to_uint8(img)[:, :, ::-1]
+        ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(pixels), [cv2.IMWRITE_JPEG_QUALITY, quality])
+        if not ok:
+            raise RuntimeError(f"JPEG encoding of {name} failed")
+        rel = f"{IMAGES}/{name}.jpg"
+        (self.tmp / rel).parent.mkdir(parents=True, exist_ok=True)
+        (self.tmp / rel).write_bytes(buf.tobytes())
+        self.written.append(rel)
+        return rel
+
+    def full(self, path: Path, name: str) -> str:
+        """The href of a full-size image: a path relative to ``out``, or a copy in ``images/full/``."""
+        if self.copy_full:
+            rel = f"{IMAGES}/full/{name}{path.suffix}"
+            (self.tmp / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(path, self.tmp / rel)
+            return rel
+        return os.path.relpath(Path(path).resolve(), self.out)
+
+    def copy(self, path: Path, name: str) -> str:
+        """Copy a file (a plot) into ``images/``; its src."""
+        rel = f"{IMAGES}/{name}"
+        (self.tmp / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(path, self.tmp / rel)
+        return rel
+
+
+def figure(images: ImageWriter, name: str, img: np.ndarray, full: Path, caption: str,
+           diff_against: np.ndarray | None = None) -> str:
+    """One captioned, clickable thumbnail (with its difference thumbnail when ``diff_against`` is given)."""
+    src = images.thumb(name, img)
+    attrs = f' data-thumb="{url(src)}"'
+    if diff_against is not None:
+        diff = np.abs(img - diff_against).mean(axis=2) * DIFF_GAIN
+        attrs += f' data-diff="{url(images.thumb(name + "_diff", diff, DIFF_JPEG_QUALITY))}"'
+    small = " small" if img.shape[1] < images.width // 2 else ""
+    return (f'<figure><a class="zoom" href="{url(images.full(full, name))}"><img class="thumb{small}" '
+            f'src="{url(src)}"{attrs} alt="{e(caption)}" loading="lazy"></a><figcaption>{e(caption)}</figcaption>'
+            "</figure>")
+
+
+def psnr_caption(value: float | None) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "PSNR n/a"
+    return "PSNR ∞" if math.isinf(value) else f"{value:.2f} dB"
+
+
+def evenly_spaced(items: Sequence, n: int) -> list:
+    """``n`` items spread over ``items`` (first and last included), or all of them."""
+    if len(items) <= n:
+        return list(items)
+    if n == 1:
+        return [items[0]]
+    return [items[round(i * (len(items) - 1) / (n - 1))] for i in range(n)]
+
+
+# --- summary ---------------------------------------------------------------------------------
+def summary_table(df, method_order: Sequence[str] = ()) -> Table:
+    """Per weather setting (a block) x method (a row): means over the finished cells, counts, marks.
+
+    Raises NimbusError for a store without a finished cell or mixing protocols.
+    """
+    from weather_synth.settings import ALL_SETTING_NAMES
+
+    ok = finished(df)
+    ssim_protocol, lp = protocols(ok)
+    every = labelled(df.copy())
+    blocks = []
+    for w in ordered(ok["weather"], ALL_SETTING_NAMES):
+        sub = every[every["weather"] == w]
+        rows = []
+        for m in ordered(sub["method_label"], method_order):
+            g = sub[sub["method_label"] == m]
+            good = g[g["status"] == "ok"]
+            row = Row(m, fields={"method": m})
+            for col in (*METRIC_COLUMNS, TIME_COLUMN):
+                v = good[col.key].astype(float)
+                row.values[("", col.key)] = None if len(v) == 0 or v.isna().any() else float(v.mean())
+            row.values[("", "cells")] = float(len(g))
+            row.values[("", "errors")] = float(len(g) - len(good))
+            rows.append(row)
+        blocks.append(Block(rows, name=w, fields={"weather": w}))
+    return Table("summary", "summary", "Summary", SUMMARY_COLUMNS, [""], blocks, lead=("Method", "Weather"),
+                 notes=[f"Means over the finished cells of each setting (every scene and seed) against the clean "
+                        f"test views; SSIM protocol: {ssim_protocol}; LPIPS: {lp}; Train s: the training loop's "
+                        "wall-clock seconds. Best and second best marked per setting."])
+
+
+def table_html(table: Table) -> str:
+    """A sortable HTML table of a one-group :class:`~benchmark.tables.model.Table`, blocks as a first column."""
+    group = table.groups[0]
+    heads = [table.lead[1] if len(table.lead) > 1 else "", table.lead[0], *(c.text for c in table.columns)]
+    out = ['<table class="sortable"><thead><tr>' + "".join(f"<th>{e(h)}</th>" for h in heads)
+           + "</tr></thead><tbody>"]
+    for bi, block in enumerate(table.blocks):
+        marks = {c.key: table.marks(group, c.key, bi) for c in table.columns}
+        for ri, row in enumerate(block.rows):
+            cells = [f"<td>{e(block.name)}</td>", f"<td>{e(row.label)}</td>"]
+            for c in table.columns:
+                v = row.values.get((group, c.key))
+                cls = MARK_CLASS.get(marks[c.key][ri])
+                cells.append(f'<td data-v="{v if finite(v) else ""}"{f" class={cls!r}" if cls else ""}>'
+                             f"{e(c.format(v, '–'))}</td>")
+            out.append("<tr>" + "".join(cells) + "</tr>")
+    out.append("</tbody></table>")
+    out += [f'<p class="note">{e(n)}</p>' for n in table.notes]
+    return "\n".join(out)
+
+
+def csv_table_html(path: Path) -> str:
+    """A CSV file as a sortable HTML table (numbers right-aligned by their sort value)."""
+    with open(path, newline="", encoding="utf-8") as f:
+        rows = list(csv.reader(f))
+    if not rows:
+        return f'<p class="note">{e(path.name)} is empty.</p>'
+    body = []
+    for r in rows[1:]:
+        cells = []
+        for v in r:
+            try:
+                num = float(v)
+                cells.append(f'<td data-v="{num if math.isfinite(num) else ""}" class="num">{e(v)}</td>')
+            except ValueError:
+                cells.append(f"<td>{e(v)}</td>")
+        body.append("<tr>" + "".join(cells) + "</tr>")
+    return ('<div class="wide"><table class="sortable"><thead><tr>' + "".join(f"<th>{e(h)}</th>" for h in rows[0])
+            + "</tr></thead><tbody>\n" + "\n".join(body) + "</tbody></table></div>")
+
+
+# --- test views ------------------------------------------------------------------------------
+def column_labels(recs: Sequence[dict]) -> list[str]:
+    """A distinct label per record of one setting: the method, then preset / seed / overrides where needed."""
+    labels = [r["method"] for r in recs]
+    for extra in (lambda r: r.get("preset"), lambda r: f"s{r.get('seed')}",
+                  lambda r: ",".join(f"{k}={v}" for k, v in sorted((r.get("overrides") or {}).items())) or "-",
+                  lambda r: r["cell_id"]):
+        dup = {lab for lab in labels if labels.count(lab) > 1}
+        if not dup:
+            break
+        labels = [f"{lab} {extra(r)}" if lab in dup else lab for lab, r in zip(labels, recs)]
+    return labels
+
+
+def view_grids(root: Path, recs: list[dict], images: ImageWriter, options: ReportOptions) -> str:
+    """Per scene and setting, the grid of test views (input, each cell's render, clean), with PSNR captions."""
+    from benchmark.score import ImageIndex
+    from nimbus.data.images import read_image
+    from nimbus.metrics import peak_signal_noise_ratio
+    from weather_synth.settings import ALL_SETTING_NAMES, parse_setting
+
+    out = []
+    ok = [r for r in recs if r.get("status") == "ok" and r.get("run_dir")]
+    for scene in ordered(f"{r['scene']}-{r['size']}" for r in ok):
+        out.append(f'<h3 id="views-{e(scene)}">{e(scene)}</h3>')
+        here = [r for r in ok if f"{r['scene']}-{r['size']}" == scene]
+        for w in ordered((r["weather"] for r in here), ALL_SETTING_NAMES):
+            cells = [r for r in here if r["weather"] == w]
+            order = ordered((r["method"] for r in cells), options.method_order)
+            cells.sort(key=lambda r: order.index(r["method"]))
+            labels = column_labels(cells)
+            data = root / "data" / scene / w
+            names = ordered(v["name"] for r in cells for v in (r.get("per_view") or []))
+            if not names and (data / "test_list.txt").is_file():
+                names = (data / "test_list.txt").read_text().split()
+            inputs, cleans = ImageIndex(data / "images"), ImageIndex(data / "clean")
+            rows = []
+            for name in evenly_spaced(names, options.views):
+                clean_path = cleans.find(name)
+                if clean_path is None:
+                    continue
+                clean = read_image(clean_path)
+                key = f"views/{scene}/{w}/{Path(name).with_suffix('').as_posix()}"
+                figs = [f"<th>{e(name)}</th>"]
+                in_path = inputs.find(name)
+                if in_path is not None:
+                    img = read_image(in_path)
+                    figs.append("<td>" + figure(images, f"{key}_input", img, in_path,
+                                                psnr_caption(float(peak_signal_noise_ratio(img, clean))), clean)
+                                + "</td>")
+                else:
+                    figs.append('<td class="missing">no input</td>')
+                for r, label in zip(cells, labels):
+                    figs.append("<td>" + render_figure(root, r, name, clean, images, f"{key}_{r['cell_id']}")
+                                + "</td>")
+                figs.append("<td>" + figure(images, f"{key}_clean", clean, clean_path, "clean (reference)")
+                            + "</td>")
+                rows.append("<tr>" + "".join(figs) + "</tr>")
+            heads = ["view", "degraded input", *labels, "clean"]
+            out.append(f"<h4>{e(scene)} · {e(parse_setting(w).description)} ({e(w)})</h4>")
+            out.append('<div class="wide"><table class="views"><thead><tr>'
+                       + "".join(f"<th>{e(h)}</th>" for h in heads) + "</tr></thead><tbody>\n"
+                       + "\n".join(rows) + "</tbody></table></div>")
+    return "\n".join(out)
+
+
+def render_figure(root: Path, rec: dict, name: str, clean: np.ndarray, images: ImageWriter, key: str) -> str:
+    """One cell's render of view ``name`` with its PSNR (the record's, else computed), or why it is missing."""
+    from benchmark.score import ImageIndex
+    from nimbus.data.images import read_image
+    from nimbus.metrics import peak_signal_noise_ratio
+
+    run = root / rec["run_dir"]
+    split = read_json(run / "results.json").get("eval_split", "test")
+    folder = run / "renders" / split
+    path = ImageIndex(folder).find(name) if folder.is_dir() else None
+    if path is None:
+        return f'<span class="missing">no render ({e(folder.relative_to(root))} missing)</span>'
+    img = read_image(path)
+    psnr = next((v.get("psnr") for v in rec.get("per_view") or [] if v.get("name") == name), None)
+    if psnr is None and img.shape == clean.shape:
+        psnr = float(peak_signal_noise_ratio(img, clean))
+    return figure(images, key, img, path, psnr_caption(psnr), clean if img.shape == clean.shape else None)
+
+
+def read_json(path: Path) -> dict:
+    """A JSON object file, or {} when it is missing or not one (the report shows what it can)."""
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return d if isinstance(d, dict) else {}
+
+
+# --- NimbusGS ----------------------------------------------------------------------------------
+def decision_html(nimbus: dict) -> str:
+    """The component decision and its evidence as a two-column table (nested records flattened)."""
+    keys = ("mode", "components", "haze_evidence", "particle_evidence", "estimated_time_saved_s",
+            "initial_transmission", "beta_max", "beta_mean")
+    rows = []
+
+    def add(name: str, v) -> None:
+        if isinstance(v, dict):
+            for k, sub in v.items():
+                add(f"{name}.{k}", sub)
+            return
+        if isinstance(v, float):
+            v = f"{v:.4g}"
+        elif isinstance(v, list):
+            v = ", ".join(map(str, v)) or "none"
+        rows.append(f"<tr><th>{e(name)}</th><td>{e(v)}</td></tr>")
+
+    for k in keys:
+        if k in nimbus:
+            add(k, nimbus[k])
+    return '<table class="kv">' + "".join(rows) + "</table>"
+
+
+def nimbus_sections(root: Path, recs: list[dict], images: ImageWriter) -> str:
+    """Per NimbusGS cell (a run whose results.json has a ``nimbus`` record): decision and decomposition."""
+    from nimbus.data.images import read_image
+
+    out = []
+    for r in recs:
+        if r.get("status") != "ok" or not r.get("run_dir"):
+            continue
+        run = root / r["run_dir"]
+        nimbus = read_json(run / "results.json").get("nimbus")
+        strips = sorted((run / "decomposition").glob("*.png")) if (run / "decomposition").is_dir() else []
+        if not isinstance(nimbus, dict) and not strips:
+            continue
+        out.append(f'<h3>{e(r["cell_id"])}</h3><div class="nimbus">')
+        if isinstance(nimbus, dict):
+            out.append(f"<div><h4>Component decision ({e(nimbus.get('mode', '?'))})</h4>{decision_html(nimbus)}"
+                       "</div>")
+        if strips:
+            rows = []
+            for strip_path in evenly_spaced(strips, DECOMPOSITION_VIEWS):
+                strip = read_image(strip_path)
+                w = strip.shape[1] // len(DECOMPOSITION_PANELS)
+                figs = [f"<th>{e(strip_path.name)}</th>"]
+                for i, panel in enumerate(DECOMPOSITION_PANELS):
+                    key = f"nimbus/{r['cell_id']}/{strip_path.stem}_{i}"
+                    figs.append("<td>" + figure(images, key, strip[:, i * w:(i + 1) * w], strip_path, panel)
+                                + "</td>")
+                rows.append("<tr>" + "".join(figs) + "</tr>")
+            out.append('<div class="wide"><h4>Decomposition of training views (full size: the whole strip)</h4>'
+                       '<table class="views"><tbody>' + "\n".join(rows) + "</tbody></table></div>")
+        out.append("</div>")
+    return "\n".join(out)
+
+
+# --- trade-off, stability ------------------------------------------------------------------------
+def extra_sections(root: Path, images: ImageWriter, options: ReportOptions) -> tuple[str, str]:
+    """The trade-off and stability sections' HTML (empty strings when there is nothing to show)."""
+    trade, stab = [], []
+    for i, folder in enumerate(found_outputs(root, options.tradeoff, TRADEOFF_FILES, "--tradeoff")):
+        trade.append(f"<h3>{e(folder)}</h3>")
+        if (folder / "tradeoff.png").is_file():
+            src = images.copy(folder / "tradeoff.png", f"tradeoff-{i}.png")
+            trade.append(f'<a class="zoom" href="{url(src)}"><img class="plot" src="{url(src)}" '
+                         'alt="speed / accuracy trade-off (Pareto fronts)"></a>')
+        trade.append(csv_table_html(folder / "tradeoff.csv"))
+    for folder in found_outputs(root, options.stability, STABILITY_FILES, "--stability"):
+        stab.append(f"<h3>{e(folder)}</h3>" + csv_table_html(folder / "stability.csv"))
+        more = [n for n in STABILITY_FILES[1:] if (folder / n).is_file()]
+        if more:
+            stab.append('<p class="note">Details: ' + ", ".join(
+                f'<a href="{url(images.full(folder / n, n))}">{e(n)}</a>' for n in more) + "</p>")
+    return "\n".join(trade), "\n".join(stab)
+
+
+# --- provenance ---------------------------------------------------------------------------------
+def reproduce_commands(recs: Iterable[dict], root: str) -> list[str]:
+    """``nimbus-bench run`` command lines that run exactly these cells (each one a full product of its lists).
+
+    Cells are grouped by what one command fixes (size, preset, overrides, scoring protocols); within a
+    group, (scene, setting) pairs with the same (methods x seeds) are gathered, and scenes sharing their
+    settings make one command.
+    """
+    groups: dict[tuple, dict[tuple[str, str], set[tuple[str, int]]]] = {}
+    for r in recs:
+        key = (r.get("size"), r.get("preset"), tuple(sorted((r.get("overrides") or {}).items())),
+               r.get("ssim_protocol") or "3dgs", r.get("lpips_net") or "none")
+        groups.setdefault(key, {}).setdefault((r["scene"], r["weather"]), set()).add((r["method"], int(r["seed"])))
+    lines = []
+    for (size, preset, overrides, ssim, lpips), pairs in groups.items():
+        by_signature: dict[tuple, dict[str, list[str]]] = {}
+        for (scene, weather), ms in pairs.items():
+            methods = sorted({m for m, _ in ms})
+            seeds = sorted({s for _, s in ms})
+            if len(ms) == len(methods) * len(seeds):
+                signatures = [(tuple(methods), tuple(seeds))]
+            else:  # not a product: one command per method
+                signatures = [((m,), tuple(sorted(s for mm, s in ms if mm == m))) for m in methods]
+            for sig in signatures:
+                by_signature.setdefault(sig, {}).setdefault(scene, []).append(weather)
+        for (methods, seeds), scenes in by_signature.items():
+            by_weathers: dict[tuple, list[str]] = {}
+            for scene, weathers in scenes.items():
+                by_weathers.setdefault(tuple(weathers), []).append(scene)
+            for weathers, scene_list in by_weathers.items():
+                argv = ["nimbus-bench", "run", "--scenes", ",".join(scene_list), "--weathers", ",".join(weathers),
+                        "--methods", ",".join(methods), "--preset", str(preset), "--seeds",
+                        ",".join(map(str, seeds)), "--size", str(size), "--ssim", ssim, "--lpips", lpips,
+                        "--root", root]
+                for k, v in overrides:
+                    argv += ["--set", f"{k}={v}"]
+                lines.append(shlex.join(argv))
+    return lines
+
+
+def provenance_html(root: Path, recs: list[dict], command: str | None) -> str:
+    """Commands, seeds, protocols, versions and the cells' records in brief."""
+    from benchmark.cell import SCENE_SEED, SYNTH_PROTOCOL, SYNTH_SEED
+    from benchmark.report import shorten
+    from nimbus.versions import software_versions
+
+    out = ["<h3>Commands</h3>"]
+    if command:
+        out.append(f"<p>This page: <code>{e(command)}</code> (generated "
+                   f"{e(datetime.now(timezone.utc).isoformat(timespec='seconds'))}, nimbus "
+                   f"{e(software_versions().get('nimbus', '?'))}).</p>")
+    out.append("<p>The cells, rebuilt from their records (the store keeps no command lines; rerunning these on an "
+               "empty root recomputes every cell):</p><pre>"
+               + e("\n".join(reproduce_commands(recs, str(root)))) + "</pre>")
+    seeds = sorted({int(r["seed"]) for r in recs})
+    synth = []
+    for scene in ordered(f"{r['scene']}-{r['size']}" for r in recs):
+        index = read_json(root / "data" / scene / "index.json")
+        synth.append(f"{scene}: protocol {index.get('protocol', SYNTH_PROTOCOL)}, seed {index.get('seed', SYNTH_SEED)}")
+    out.append(f"<h3>Seeds</h3><ul><li>training: {e(', '.join(map(str, seeds)))}</li>"
+               f"<li>built-in scenes rendered with seed {SCENE_SEED}</li>"
+               f"<li>weather synthesis: {e('; '.join(synth))}</li></ul>")
+    versions: dict[str, dict[str, int]] = {}
+    for r in recs:
+        for k, v in (r.get("versions") or {}).items():
+            versions.setdefault(k, {}).setdefault(str(v), 0)
+            versions[k][str(v)] += 1
+    out.append('<h3>Versions</h3><table class="kv">' + "".join(
+        f"<tr><th>{e(k)}</th><td>{e(', '.join(v if len(c) == 1 else f'{v} ({n} cells)' for v, n in c.items()))}"
+        "</td></tr>" for k, c in sorted(versions.items())) + "</table>")
+    heads = ("cell", "status", "device", "host", "finished", "wall s", "config", "input", "error")
+    rows = []
+    for r in recs:
+        vals = (r["cell_id"], r.get("status"), r.get("device") or "", r.get("host") or "", r.get("finished_at") or "",
+                r.get("wall_time_s") or "", (r.get("config_hash") or "")[:12], (r.get("input_sha256") or "")[:12],
+                shorten(r.get("error") or "", 160))
+        rows.append("<tr>" + "".join(f"<td>{e(v)}</td>" for v in vals) + "</tr>")
+    out.append("<h3>Cells</h3><p class=\"note\">config / input: the first 12 hex digits of the sha256 of the "
+               "config and of the degraded dataset's manifest.</p><div class=\"wide\"><table class=\"sortable\">"
+               "<thead><tr>" + "".join(f"<th>{e(h)}</th>" for h in heads) + "</tr></thead><tbody>"
+               + "\n".join(rows) + "</tbody></table></div>")
+    return "\n".join(out)
+
+
+# --- the page --------------------------------------------------------------------------------------
+STYLE = """
+body{font:14px/1.4 system-ui,sans-serif;margin:0 auto;max-width:1400px;padding:0 16px 48px;color:#222}
+h1{margin:16px 0 4px}h2{border-bottom:2px solid #ccc;margin-top:32px}h4{margin:16px 0 6px}
+nav a{margin-right:12px}code,pre{background:#f4f4f4;font-size:12px}pre{padding:8px;overflow-x:auto}
+table{border-collapse:collapse;margin:6px 0}th,td{padding:3px 8px;border-bottom:1px solid #e4e4e4;text-align:left}
+td[data-v],td.num{text-align:right;font-variant-numeric:tabular-nums}
+table.sortable th{cursor:pointer;background:#f0f0f0;user-select:none}
+table.sortable th[data-dir=asc]::after{content:" ▲"}table.sortable th[data-dir=desc]::after{content:" ▼"}
+td.best{font-weight:bold;background:#fbd0d0}td.second{text-decoration:underline;background:#fde6c8}
+table.views td,table.views th{vertical-align:top;border:none}
+figure{margin:0;width:160px}figure img{width:100%;display:block;border:1px solid #ccc}
+img.small{image-rendering:pixelated}figcaption{font-size:12px;color:#444;text-align:center}
+img.plot{max-width:100%;border:1px solid #ccc}.wide{overflow-x:auto}.note{color:#555;font-size:12px}
+.missing{color:#a00;font-size:12px}.nimbus{display:flex;flex-wrap:wrap;gap:24px;align-items:flex-start}
+table.kv th{font-weight:normal;color:#555}.toggle{position:sticky;top:0;background:#fff;padding:6px 0;z-index:1}
+#lightbox{position:fixed;inset:0;background:rgba(0,0,0,.85);display:none;align-items:center;
+justify-content:center;z-index:9;cursor:zoom-out}#lightbox img{max-width:95vw;max-height:95vh;
+image-rendering:pixelated;background:#fff}
+"""
+
+SCRIPT = """
+document.querySelectorAll('table.sortable').forEach(function(t){
+  t.querySelectorAll('th').forEach(function(th,i){th.addEventListener('click',function(){
+    var dir=th.dataset.dir==='asc'?'desc':'asc';
+    t.querySelectorAll('th').forEach(function(h){delete h.dataset.dir});th.dataset.dir=dir;
+    var body=t.tBodies[0],rows=Array.prototype.slice.call(body.rows);
+    function key(r){var c=r.cells[i];if(!c)return '';return c.dataset.v!==undefined?c.dataset.v:c.textContent}
+    rows.sort(function(a,b){var x=key(a),y=key(b);if(x===''||y==='')return x===y?0:(x===''?1:-1);
+      var nx=parseFloat(x),ny=parseFloat(y),s=(!isNaN(nx)&&!isNaN(ny))?nx-ny:String(x).localeCompare(String(y));
+      return dir==='asc'?s:-s});
+    rows.forEach(function(r){body.appendChild(r)});});});});
+var diff=document.getElementById('diff');
+if(diff){diff.addEventListener('change',function(){document.querySelectorAll('img[data-diff]').forEach(
+  function(im){im.src=diff.checked?im.dataset.diff:im.dataset.thumb})})}
+var box=document.getElementById('lightbox'),big=box.querySelector('img');
+document.querySelectorAll('a.zoom').forEach(function(a){a.addEventListener('click',function(ev){
+  ev.preventDefault();var im=a.querySelector('img');var showDiff=diff&&diff.checked&&im.dataset.diff;
+  big.onerror=function(){big.onerror=null;big.src=im.src};big.src=showDiff?im.dataset.diff:a.getAttribute('href');
+  box.style.display='flex'})});
+box.addEventListener('click',function(){box.style.display='none'});
+document.addEventListener('keydown',function(ev){if(ev.key==='Escape')box.style.display='none'});
+"""
+
+
+def build_page(root: Path, tmp: Path, out: Path, options: ReportOptions, command: str | None) -> str:
+    """The page's HTML; thumbnails are written under ``tmp`` (the final folder will be ``out``)."""
+    from benchmark.store import ResultsStore, load_results
+
+    with warnings.catch_warnings():  # a truncated last line is the store's business, not the report's
+        warnings.simplefilter("ignore", UserWarning)
+        df = load_results(root)
+        recs = list(ResultsStore(root).latest().values())
+    table = summary_table(df, options.method_order)  # raises for an empty store before any image is made
+    images = ImageWriter(tmp, out, options.thumb_width, options.copy_full)
+    n_ok = sum(r.get("status") == "ok" for r in recs)
+    sections = [("summary", "Summary", table_html(table)),
+                ("views", "Test views",
+                 '<p class="toggle"><label><input type="checkbox" id="diff"> show the difference to the clean view '
+                 f"(|image − clean|, mean over the channels, × {DIFF_GAIN:g}, grey)</label> · click an image to enlarge it (full size)</p>"
+                 + view_grids(root, recs, images, options))]
+    nimbus = nimbus_sections(root, recs, images)
+    if nimbus:
+        sections.append(("nimbus", "NimbusGS: component decision and decomposition", nimbus))
+    trade, stab = extra_sections(root, images, options)
+    if trade:
+        sections.append(("tradeoff", "Speed / accuracy trade-off", trade))
+    if stab:
+        sections.append(("stability", "Stability", stab))
+    sections.append(("provenance", "Provenance", provenance_html(root, recs, command)))
+    nav = " ".join(f'<a href="#{k}">{e(title)}</a>' for k, title, _ in sections)
+    body = "\n".join(f'<section id="{k}"><h2>{e(title)}</h2>\n{text}\n</section>' for k, title, text in sections)
+    return (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+            f"<title>Nimbus benchmark report: {e(root)}</title><style>{STYLE}</style></head><body>\n"
+            f"<h1>Nimbus benchmark report</h1><p>Results store <code>{e(root)}</code>: {len(recs)} cell(s), "
+            f"{n_ok} finished, {len(recs) - n_ok} failed.</p><nav>{nav}</nav>\n{body}\n"
+            f'<div id="lightbox"><img alt="enlarged image"></div><script>{SCRIPT}</script></body></html>\n')
+
+
+def build_report(root: str | os.PathLike, out: str | os.PathLike, options: ReportOptions = ReportOptions(),
+                 command: str | None = None, overwrite: bool = False) -> Path:
+    """Write the report of the store under ``root`` into the folder ``out``, atomically; the page's path.
+
+    Raises
+    ------
+    NimbusError
+        No store (or one without a finished cell), an ``out`` that is, holds or lies in the store's
+        results, runs or data, or an existing non-empty ``out`` without ``overwrite``.
+    """
+    from benchmark.store import require_store
+    from nimbus.utils.fs import atomic_dir, check_output_dir, refuse_overlap
+
+    root, out = Path(root), Path(out)
+    store = require_store(root)
+    if options.views < 1 or options.thumb_width < 16:
+        raise NimbusError(f"--views must be at least 1 and --thumb-width at least 16, got {options.views} and "
+                          f"{options.thumb_width}")
+    # Replacing --out deletes it: it must be none of what the page is made from.
+    refuse_overlap(out, [store, root / "runs", root / "data", root / "scenes", options.tradeoff, options.stability])
+    check_output_dir(out, overwrite)
+    with atomic_dir(out, overwrite=overwrite) as tmp:
+        (tmp / PAGE).write_text(build_page(root, tmp, out, options, command), encoding="utf-8")
+    return out / PAGE

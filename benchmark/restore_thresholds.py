@@ -1,0 +1,95 @@
+"""The validation data behind ``restorer=auto``'s thresholds (:mod:`nimbus.restore`), and what it shows.
+
+    python -m benchmark.restore_thresholds [--root DIR] [--sizes tiny,small]
+
+Renders the built-in scenes with scene seed :data:`VALIDATION_SEED` and degrades them with the
+same synthesis seed (the benchmark's cells use 0 for both, so no view scored there is seen
+here), all seven settings, the ``onerestore`` protocol; then prints, over the *training* views,
+the range of each ``auto`` statistic for views with and without the degradation it detects,
+and how many views the current thresholds get wrong.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+#: Scene and synthesis seed of the validation data (the benchmark's is 0).
+VALIDATION_SEED = 1
+SCENES = ("garden", "street", "tabletop")
+
+
+def prepare(root: Path, sizes: list[str]) -> list[Path]:
+    """The degraded scene folders (``root/data/<scene>-<size>``), rendered and synthesised where missing."""
+    from nimbus.data.builtin import write_builtin
+    from nimbus.data.io import load_scene
+    from weather_synth.config import protocol_config
+    from weather_synth.dataset import degrade_scene
+    from weather_synth.settings import ALL_SETTING_NAMES, parse_setting
+
+    out = []
+    for size in sizes:
+        for scene in SCENES:
+            clean, data = root / "scenes" / f"{scene}-{size}", root / "data" / f"{scene}-{size}"
+            if not (clean / "manifest.json").is_file():
+                write_builtin(scene, clean, size, seed=VALIDATION_SEED, overwrite=True, progress=False)
+            if not all((data / s / "manifest.json").is_file() for s in ALL_SETTING_NAMES):
+                degrade_scene(load_scene(clean), data, [parse_setting(s) for s in ALL_SETTING_NAMES],
+                              protocol_config("onerestore", VALIDATION_SEED), overwrite=True, progress=False,
+                              source=f"builtin:{scene}:{size}")
+            out.append(data)
+    return out
+
+
+def evidence_rows(data_dirs: list[Path]) -> list[dict]:
+    """One row per training view and setting (``clean`` included): scene, setting, name and the evidence."""
+    from nimbus.data.images import read_image
+    from nimbus.restore import image_evidence
+
+    rows = []
+    for data in data_dirs:
+        for setting in sorted(p for p in data.iterdir() if (p / "manifest.json").is_file()):
+            names = (setting / "train_list.txt").read_text().split()
+            for kind, folder in (("clean", "clean"), (setting.name, "images")):
+                for name in names:
+                    if kind == "clean" and setting.name != "H":  # the clean views once per scene
+                        continue
+                    ev = image_evidence(read_image(setting / folder / name))
+                    rows.append({"scene": data.name, "setting": kind, "name": name, **ev.to_dict()})
+    return rows
+
+
+def _report(rows: list[dict], stat: str, components: str, threshold: float) -> str:
+    """The ranges of ``stat`` over views with any of ``components`` (e.g. ``"RS"``) and without."""
+    has = np.array([bool(set(components) & set(r["setting"].split("+"))) for r in rows])
+    x = np.array([r[stat] for r in rows])
+    pos, neg = x[has], x[~has]
+    wrong = int((pos < threshold).sum() + (neg >= threshold).sum())
+    cuts = np.unique(x)
+    errors = [int((pos < c).sum() + (neg >= c).sum()) for c in cuts]
+    best = float(cuts[int(np.argmin(errors))])
+    return (f"{stat} ({'/'.join(components)}): with {pos.min():.4f}..{pos.max():.4f} (n={len(pos)}), "
+            f"without {neg.min():.4f}..{neg.max():.4f} (n={len(neg)}); threshold {threshold}: {wrong} views wrong "
+            f"(fewest, {min(errors)}, from {best:.4f})")
+
+
+def main(argv: list[str] | None = None) -> int:
+    from nimbus.restore import HAZE_DARK_MEAN, PARTICLE_SHARE
+
+    parser = argparse.ArgumentParser(prog="python -m benchmark.restore_thresholds", description=__doc__.split("\n")[0])
+    parser.add_argument("--root", default="restore-validation", help="where the validation scenes are (made)")
+    parser.add_argument("--sizes", default="tiny,small", help="built-in scene sizes, comma-separated")
+    args = parser.parse_args(argv)
+    rows = evidence_rows(prepare(Path(args.root), [s.strip() for s in args.sizes.split(",") if s.strip()]))
+    for scene in [*sorted({r["scene"] for r in rows}), "all"]:
+        sub = [r for r in rows if scene in ("all", r["scene"])]
+        print(scene)
+        print("  " + _report(sub, "dark_mean", "H", HAZE_DARK_MEAN))
+        print("  " + _report(sub, "white_share", "RS", PARTICLE_SHARE))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

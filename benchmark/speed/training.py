@@ -1,0 +1,339 @@
+"""Where a whole training iteration spends its time, 3DGS against NimbusGS, part by part.
+
+Usage::
+
+    python -m benchmark.speed.training [--scene builtin:garden] [--sizes tiny small]
+                                       [--methods 3dgs nimbus-full nimbus] [--preset tiny]
+                                       [--iterations N] [--warmup 10] [--threads 1,2]
+
+For each size (``builtin:NAME:SIZE``; a scene folder is timed once, at its own size), each
+method and each thread count, the method is built as ``nimbus-train`` builds it (its
+registry preset, the runner's training frame, seed 0) and trained for the preset's
+schedule (``--iterations`` rescales it, as ``--set iterations=N`` does), every step timed
+after ``--warmup`` untimed ones.  The parts are timed by wrapping, for the run only, the
+functions the method itself calls (nothing in ``nimbus`` changes and the arithmetic is
+the same; each wrapper reads the clock, and on CUDA synchronises, around the call):
+
+====================  ==================================================================
+projection + SH       the backend's ``project_and_shade`` ("cpp", "torch")
+binning               its ``bin_gaussians``
+compositing fwd       its ``composite`` (gsplat: its whole ``rasterization`` call)
+backward: raster      from the first gradient reaching the compositor's outputs to the
+                      end of ``backward()`` (compositing + projection backward)
+backward: rest        the rest of ``backward()`` (loss, and NimbusGS's medium)
+loss                  ``method.loss`` (L1 + SSIM; NimbusGS: also L_DCP, L_TV, compose)
+NimbusGS march        ``march_interval`` + ``march`` (forward)
+NimbusGS airlight     the airlight network (forward)
+GGS                   ``reweight_gradients``
+optimiser step        ``optimizer_step`` (NimbusGS: with the medium's Adam)
+densification         ``strategy.step_post_backward`` (statistics every step, densify and
+                      prune at its steps), amortised
+NimbusGS refresh      ``after_step``: the stage boundary (evidence, first R) and the periodic
+                      R refreshes, amortised
+other                 the rest of ``train_iteration`` (view pick, guards, PSNR)
+====================  ==================================================================
+
+A part nested in another is counted once, in the inner one (the loss excludes the
+march it calls), except inside densification and refresh, which are counted whole.
+Columns: ``ms/call`` the median over the steps that called the part (amortised parts: the
+largest call, a densification or refresh step), ``ms/it`` its total
+over the timed steps divided by their number (the amortised cost), ``share`` of the
+whole.  ``whole`` is the median (and mean) wall milliseconds of ``train_iteration``;
+``raster`` the median per step of the rasterizer's forward + backward (the first four
+rows).  The summary gives whole / raster, NimbusGS / 3DGS (medians of the same run) and
+the 1 / 2 thread ratio.  On a machine shared with other jobs every figure includes
+waiting for a core: the load average is printed, compare ratios from one run only.
+
+``nimbus`` on a clean built-in scene usually turns its components off (that is what it is
+for); ``nimbus-full`` times every component.  A ``nimbus-synth degrade`` setting folder
+as ``--scene`` times them on weather.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import statistics
+import tempfile
+import time
+from collections import defaultdict
+from contextlib import ExitStack, contextmanager
+
+import torch
+
+#: The parts, in table order: (key, label).
+PARTS = (
+    ("project", "projection + SH"),
+    ("bin", "binning"),
+    ("composite", "compositing fwd"),
+    ("raster_bwd", "backward: raster"),
+    ("rest_bwd", "backward: rest"),
+    ("loss", "loss (L1 + SSIM, ...)"),
+    ("march", "NimbusGS march fwd"),
+    ("airlight", "NimbusGS airlight fwd"),
+    ("ggs", "GGS"),
+    ("optimizer", "optimiser step"),
+    ("densify", "densification (amortised)"),
+    ("refresh", "NimbusGS refresh (amortised)"),
+    ("other", "other"),
+)
+RASTER_PARTS = ("project", "bin", "composite", "raster_bwd")
+#: Parts timed whole: what they call is not timed separately.
+WHOLE_PARTS = ("densify", "refresh")
+
+
+class Probe:
+    """Per-step exclusive wall seconds of the wrapped calls (see the module docstring)."""
+
+    def __init__(self, device: torch.device) -> None:
+        self.cuda = device.type == "cuda"
+        self.steps: list[dict[str, float]] = []
+        self.current: dict[str, float] = defaultdict(float)
+        self.stack: list[list] = []  # [key, start, time spent in nested timed calls]
+        self.whole = 0  # > 0 inside a WHOLE_PARTS call
+        self.backward_start: float | None = None
+        self.raster_grad_at: float | None = None
+
+    def now(self) -> float:
+        if self.cuda:
+            torch.cuda.synchronize()
+        return time.perf_counter()
+
+    def wrap(self, key: str, fn):
+        def timed(*args, **kwargs):
+            if self.whole:
+                return fn(*args, **kwargs)
+            self.whole += key in WHOLE_PARTS
+            frame = [key, self.now(), 0.0]
+            self.stack.append(frame)
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                spent = self.now() - frame[1]
+                self.stack.pop()
+                self.whole -= key in WHOLE_PARTS
+                self.current[key] += spent - frame[2]
+                if self.stack:
+                    self.stack[-1][2] += spent
+        return timed
+
+    def wrap_composite(self, fn):
+        """The compositor, timed, with a hook marking when backward reaches its outputs."""
+        timed = self.wrap("composite", fn)
+
+        def hooked(*args, **kwargs):
+            out = timed(*args, **kwargs)
+            if not self.whole and torch.is_grad_enabled():
+                for t in out:
+                    if isinstance(t, torch.Tensor) and t.requires_grad:
+                        t.register_hook(self._raster_grad)
+            return out
+        return hooked
+
+    def _raster_grad(self, grad):
+        if self.backward_start is not None and self.raster_grad_at is None:
+            self.raster_grad_at = self.now()
+
+    def wrap_backward(self, fn):
+        def timed(tensor, *args, **kwargs):
+            if self.whole or self.stack:
+                return fn(tensor, *args, **kwargs)
+            self.backward_start, self.raster_grad_at = self.now(), None
+            try:
+                return fn(tensor, *args, **kwargs)
+            finally:
+                end = self.now()
+                split = self.raster_grad_at if self.raster_grad_at is not None else end
+                self.current["rest_bwd"] += split - self.backward_start
+                self.current["raster_bwd"] += end - split
+                self.backward_start = None
+        return timed
+
+    def step(self, fn):
+        """Run one whole training step, recording its parts and ``whole``."""
+        self.current = defaultdict(float)
+        t0 = self.now()
+        fn()
+        whole = self.now() - t0
+        self.current["other"] = whole - sum(self.current.values())
+        self.current["whole"] = whole
+        self.steps.append(dict(self.current))
+
+
+def _patch(stack: ExitStack, owner, name: str, wrapper) -> None:
+    """Replace ``owner.name`` by ``wrapper(original)`` until ``stack`` closes (frozen dataclasses too)."""
+    original = getattr(owner, name)
+    own = name in vars(owner)
+    setter = object.__setattr__ if dataclasses.is_dataclass(owner) else setattr
+    setter(owner, name, wrapper(original))
+    if own:
+        stack.callback(setter, owner, name, original)
+    else:  # an instance's patched method: uncover the class's again
+        stack.callback(object.__delattr__ if dataclasses.is_dataclass(owner) else delattr, owner, name)
+
+
+@contextmanager
+def instrumented(method, probe: Probe):
+    """``method`` (built from :mod:`nimbus.methods`) with its parts timed by ``probe`` inside the block."""
+    from nimbus.kernels import raster
+    from nimbus.render import backends
+    from nimbus.render.backends import torch as torch_backend
+
+    with ExitStack() as stack:
+        for module in (raster, torch_backend):
+            _patch(stack, module, "project_and_shade", lambda f: probe.wrap("project", f))
+            _patch(stack, module, "bin_gaussians", lambda f: probe.wrap("bin", f))
+            _patch(stack, module, "composite", probe.wrap_composite)
+        if method.device.type == "cuda" and backends.available("gsplat", method.device):
+            import gsplat  # its one call is the whole forward rasterizer: counted as compositing
+
+            _patch(stack, gsplat, "rasterization", probe.wrap_composite)
+        _patch(stack, torch.Tensor, "backward", probe.wrap_backward)
+        for name, key in (("loss", "loss"), ("reweight_gradients", "ggs"), ("optimizer_step", "optimizer"),
+                          ("after_step", "refresh")):
+            _patch(stack, method, name, lambda f, key=key: probe.wrap(key, f))
+        _patch(stack, method.strategy, "step_post_backward", lambda f: probe.wrap("densify", f))
+        medium = getattr(method, "medium", None)
+        if medium is not None:
+            from nimbus.nimbusgs import degradation
+
+            _patch(stack, degradation, "march", lambda f: probe.wrap("march", f))
+            _patch(stack, degradation, "march_interval", lambda f: probe.wrap("march", f))
+            _patch(stack, medium.airlight, "forward", lambda f: probe.wrap("airlight", f))
+        yield probe
+
+
+def time_method(method_name: str, scene, preset_name: str, iterations: int | None, warmup: int,
+                threads: int, steps: int | None = None) -> dict:
+    """Train ``method_name`` on ``scene`` and return its per-part figures (see :func:`summarise`)."""
+    from nimbus.methods.registry import get_method
+    from nimbus.train.runner import Runner
+
+    torch.set_num_threads(threads)
+    config = get_method(method_name).preset(preset_name)
+    if hasattr(config, "write_decomposition"):
+        config = dataclasses.replace(config, write_decomposition=False)
+    if iterations:
+        config = config.with_changes({"iterations": iterations})
+    with tempfile.TemporaryDirectory(prefix="bench_training_") as out:
+        method = Runner(method_name, scene, config, out, seed=0, progress=False, checkpoints=False).method
+        probe = Probe(method.device)
+        with instrumented(method, probe):
+            for step in range(1, min(config.iterations, steps or config.iterations) + 1):
+                if len(method.params) == 0:
+                    break
+                probe.step(lambda: method.train_iteration(step))
+    cam = method.train_views[0].camera
+    return dict(summarise(probe.steps[warmup:]), gaussians=len(method.params), size=f"{cam.width}x{cam.height}",
+                components=",".join(getattr(method, "components", [])) or "-", iterations=config.iterations)
+
+
+def summarise(steps: list[dict[str, float]]) -> dict:
+    """Milliseconds: per part ``(median per call, mean per step, calls)`` (for the amortised parts the largest
+    call, not the median: most of their calls do next to nothing); ``whole`` and ``raster`` medians."""
+    n = max(len(steps), 1)
+    parts = {}
+    for key, _ in PARTS:
+        calls = [s[key] for s in steps if s.get(key)]
+        typical = (max if key in WHOLE_PARTS else statistics.median)(calls) if calls else 0.0
+        parts[key] = (1e3 * typical, 1e3 * sum(calls) / n, len(calls))
+    whole = [s["whole"] for s in steps] or [0.0]
+    raster = [sum(s.get(k, 0.0) for k in RASTER_PARTS) for s in steps] or [0.0]
+    return {"parts": parts, "whole": 1e3 * statistics.median(whole), "whole_mean": 1e3 * statistics.fmean(whole),
+            "raster": 1e3 * statistics.median(raster), "steps": len(steps)}
+
+
+def markdown(title: str, runs: dict[str, dict]) -> str:
+    """One Markdown table: a row per part, a column group per run."""
+    names = list(runs)
+    head = "| part | " + " | ".join(f"{n} ms/call | ms/it | share" for n in names) + " |"
+    rule = "|---|" + "---:|---:|---:|" * len(names)
+    rows = [f"**{title}**", "", head, rule]
+    for key, label in PARTS:
+        if all(runs[n]["parts"][key][2] == 0 for n in names):
+            continue
+        cells = []
+        for n in names:
+            med, per_it, _ = runs[n]["parts"][key]
+            cells.append(f"{med:.1f} | {per_it:.1f} | {100 * per_it / runs[n]['whole_mean']:.0f}%")
+        rows.append(f"| {label} | " + " | ".join(cells) + " |")
+    rows.append("| **whole iteration** (median / mean) | " + " | ".join(
+        f"{runs[n]['whole']:.1f} | {runs[n]['whole_mean']:.1f} | 100%" for n in names) + " |")
+    rows.append("| rasterizer fwd+bwd (median) | " + " | ".join(
+        f"{runs[n]['raster']:.1f} | | " for n in names) + " |")
+    rows.append("| whole / rasterizer | " + " | ".join(
+        f"{runs[n]['whole'] / runs[n]['raster']:.2f}x | | " if runs[n]["raster"] else "n/a | | " for n in names)
+        + " |")
+    rows.append("| Gaussians at the end, components | " + " | ".join(
+        f"{runs[n]['gaussians']} | {runs[n]['components']} | " for n in names) + " |")
+    return "\n".join(rows)
+
+
+def ratio_lines(results: dict, threads: list[int]) -> list[str]:
+    """NimbusGS / 3DGS per size and thread count, and 1 / 2 (first / last) threads per method."""
+    lines = []
+    for (size, th), runs in results.items():
+        if "3dgs" in runs:
+            base = runs["3dgs"]
+            for name, r in runs.items():
+                if name != "3dgs":
+                    lines.append(f"- {size}, {th} thr: {name} / 3dgs = {r['whole'] / base['whole']:.2f}x (median), "
+                                 f"{r['whole_mean'] / base['whole_mean']:.2f}x (mean)")
+    if len(threads) > 1:
+        lo, hi = threads[0], threads[-1]
+        for (size, th), runs in results.items():
+            if th != lo or (size, hi) not in results:
+                continue
+            for name, r in runs.items():
+                other = results[size, hi].get(name)
+                if other:
+                    lines.append(f"- {size}, {name}: {lo} thr / {hi} thr = {r['whole'] / other['whole']:.2f}x "
+                                 f"(median), {r['whole_mean'] / other['whole_mean']:.2f}x (mean)")
+    return lines
+
+
+def _load() -> str:
+    try:
+        return " ".join(f"{x:.2f}" for x in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", default="builtin:garden", help="builtin:NAME (timed at --sizes) or a scene folder")
+    parser.add_argument("--sizes", nargs="+", default=["tiny", "small"], help="built-in scene sizes")
+    parser.add_argument("--methods", nargs="+", default=["3dgs", "nimbus-full", "nimbus"])
+    parser.add_argument("--preset", default="tiny", help="the methods' preset (its schedule is what is timed)")
+    parser.add_argument("--iterations", type=int, default=None, help="rescale the preset's schedule to N steps")
+    parser.add_argument("--steps", type=int, default=None,
+                        help="stop after the first N steps of the schedule (default: all of it)")
+    parser.add_argument("--warmup", type=int, default=10, help="untimed first steps")
+    parser.add_argument("--threads", default=None, help="comma-separated torch thread counts, e.g. 1,2")
+    args = parser.parse_args(argv)
+
+    from nimbus.train.run_folder import BUILTIN_PREFIX, load_scene_arg
+
+    threads = [int(t) for t in args.threads.split(",")] if args.threads else [torch.get_num_threads()]
+    specs = ([f"{args.scene}:{s}" for s in args.sizes] if args.scene.startswith(BUILTIN_PREFIX)
+             and args.scene.count(":") == 1 else [args.scene])
+    print(f"training iteration, preset {args.preset}, medians after {args.warmup} warm-up steps; "
+          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}; load average {_load()}\n", flush=True)
+    results: dict[tuple[str, int], dict] = {}
+    for spec in specs:
+        scene = load_scene_arg(spec)
+        for th in threads:
+            runs = results[spec, th] = {}
+            for name in args.methods:
+                runs[name] = time_method(name, scene, args.preset, args.iterations, args.warmup, th, args.steps)
+            first = next(iter(runs.values()))
+            print(markdown(f"{spec} ({first['size']}, {len(scene.train_views)} training views, "
+                           f"{first['iterations']}-step schedule, {first['steps']} steps timed), {th} thread(s), "
+                           f"load average {_load()}", runs) + "\n", flush=True)
+    print("\n".join(ratio_lines(results, threads)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

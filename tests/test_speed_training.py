@@ -1,0 +1,69 @@
+"""benchmark.speed.training times a run without changing it; nimbus-bench setup-kernels builds the kernels."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+import torch
+
+from benchmark.cli import TOOL
+from benchmark.speed import training
+from nimbus.cli_util import run_cli
+from nimbus.methods.registry import get_method
+from nimbus.train.run_folder import load_scene_arg
+from nimbus.train.runner import Runner
+
+
+def _train(method_name: str, scene, steps: int, probe: bool, out):
+    config = get_method(method_name).preset("tiny").with_changes({"iterations": steps})
+    method = Runner(method_name, scene, config, out, seed=0, progress=False,
+                    checkpoints=False).method
+    timer = training.Probe(method.device)
+    if probe:
+        with training.instrumented(method, timer):
+            for step in range(1, steps + 1):
+                timer.step(lambda: method.train_iteration(step))
+    else:
+        for step in range(1, steps + 1):
+            method.train_iteration(step)
+    return method, timer
+
+
+@pytest.mark.parametrize("method_name", ["3dgs", "nimbus-full"])
+def test_instrumented_training_is_bit_identical_and_times_every_part(method_name, tmp_path):
+    from nimbus.kernels import raster
+
+    scene = load_scene_arg("builtin:garden:tiny")
+    backward, composite = torch.Tensor.backward, raster.composite
+    plain, _ = _train(method_name, scene, 16, probe=False, out=tmp_path / "plain")
+    timed, probe = _train(method_name, scene, 16, probe=True, out=tmp_path / "timed")
+    for key, value in plain.params.tensors.items():
+        assert torch.equal(value, timed.params.tensors[key]), key
+    # The wrappers are gone afterwards: the method and the kernels' modules are as before.
+    assert "loss" not in vars(timed) and "step_post_backward" not in vars(timed.strategy)
+    assert torch.Tensor.backward is backward and raster.composite is composite
+    summary = training.summarise(probe.steps)
+    parts = summary["parts"]
+    must = ["project", "bin", "composite", "raster_bwd", "rest_bwd", "loss", "optimizer", "densify"]
+    if method_name == "nimbus-full":
+        must += ["march", "airlight", "ggs", "refresh"]
+    for key in must:
+        assert parts[key][2] > 0, key  # called in some step
+    for step in probe.steps:  # the exclusive parts add up to the whole step
+        assert sum(v for k, v in step.items() if k != "whole") == pytest.approx(step["whole"])
+    assert 0 < summary["raster"] < summary["whole"]
+    table = training.markdown("t", {method_name: summary | {"gaussians": 1, "components": "-"}})
+    assert "| whole / rasterizer |" in table and "| projection + SH |" in table
+
+
+def test_setup_kernels_builds_or_says_why(monkeypatch, capsys):
+    monkeypatch.setenv("NIMBUS_DISABLE_CPP", "1")
+    assert run_cli(TOOL.run, ["setup-kernels"]) == 0
+    assert "NIMBUS_DISABLE_CPP is set" in capsys.readouterr().out
+    monkeypatch.delenv("NIMBUS_DISABLE_CPP")
+    if shutil.which("c++") is None and shutil.which("g++") is None:
+        pytest.skip("no C++ compiler")
+    assert run_cli(TOOL.run, ["setup-kernels"]) == 0
+    out = capsys.readouterr().out
+    assert "compositing kernel: " in out and "ray-march kernel: " in out and "cached in " in out
