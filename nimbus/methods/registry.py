@@ -92,6 +92,8 @@ _SPECS = [
     MethodSpec("robust-3dgs", "3DGS whose loss drops outlier pixels (residual above a running quantile, voted, "
                "dilated): transients, rain, snow", "nimbus.methods.robust_3dgs:Robust3DGS",
                "nimbus.methods.robust_3dgs:preset"),
+    MethodSpec("medium-3dgs", "3DGS in a learned homogeneous medium (per-channel attenuation and backscatter)",
+               "nimbus.methods.medium_3dgs:Medium3DGS", "nimbus.methods.medium_3dgs:preset"),
     _nimbus("nimbus", "NimbusGS; components (CSM / PLM / GGS) chosen from the input views"),
     _nimbus("nimbus-full", "NimbusGS with every component forced on", components=FULL),
     _nimbus("nimbus-no-csm", "NimbusGS without continuous scattering modelling", components="plm,ggs"),
