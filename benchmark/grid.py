@@ -59,13 +59,13 @@ def resolve_methods(spec: str | None) -> tuple[list[str], list[str]]:
     if spec is None or spec.strip() == "default":
         names = [m for m in DEFAULT_METHODS if m in METHODS]
         return names, [m for m in DEFAULT_METHODS if m not in METHODS]
-    names = _split(spec, "--methods")
+    names = split_names(spec, "--methods")
     for n in names:
         get_method(n)
     return names, []
 
 
-def _split(spec: str, what: str) -> list[str]:
+def split_names(spec: str, what: str) -> list[str]:
     out = []
     for item in spec.split(","):
         item = item.strip()
@@ -101,8 +101,9 @@ def build_cells(scenes: Sequence[str], weathers: Sequence[str], methods: Sequenc
     for m in methods:
         for p in presets:
             make_config(get_method(m), p, dict(ov))  # a bad preset or --set fails here, not in a worker
-    return [Cell(sc, w, m, p, int(seed), size, ov)
-            for sc in scenes for w in weathers for m in methods for p in presets for seed in seeds]
+    # A name or seed given twice is one cell: two copies of a cell would train into one run folder at once.
+    return list(dict.fromkeys(Cell(sc, w, m, p, int(seed), size, ov) for sc in scenes for w in weathers
+                              for m in methods for p in presets for seed in seeds))
 
 
 # --- executors -----------------------------------------------------------------------------------

@@ -95,6 +95,16 @@ def test_build_cells_order_ids_and_validation():
             build_cells(**args, overrides=overrides)
 
 
+def test_a_cell_named_twice_is_one_cell(tmp_path, capsys):
+    """Repeated names and seeds made copies of one cell, which trained at once into one run folder."""
+    cs = build_cells(["garden", "garden"], ["H", "h"], ["3dgs"], ["tiny", "tiny"], [0, 0])
+    assert [c.cell_id for c in cs] == ["garden-tiny_H_3dgs_tiny_s0"]
+    for flag in ("--preset", "--scenes"):
+        assert run_cli(TOOL.run, ["run", flag, ",", "--root", str(tmp_path / "r")]) == 2
+        assert f"{flag} is empty" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
+
+
 def test_default_methods_skip_unregistered(monkeypatch):
     monkeypatch.setattr(grid, "DEFAULT_METHODS", ("not-a-method", "3dgs"))
     names, skipped = grid.resolve_methods(None)

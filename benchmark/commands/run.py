@@ -17,7 +17,7 @@ import sys
 import warnings
 
 from benchmark.cell import DEFAULT_PRESET, DEFAULT_SIZE
-from benchmark.grid import (add_run_arguments, build_cells, executor_from_args, options_from_args,
+from benchmark.grid import (add_run_arguments, build_cells, executor_from_args, options_from_args, split_names,
                             resolve_methods, run_grid, say_failed)
 from nimbus.errors import NimbusError
 
@@ -56,20 +56,19 @@ def run(args: argparse.Namespace) -> int:
     from nimbus.config_set import parse_set_args
     from weather_synth.settings import parse_weather
 
-    scenes = [s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else list_scenes()
-    if not scenes:
-        raise NimbusError("--scenes is empty; give e.g. --scenes garden,street")
+    scenes = split_names(args.scenes, "--scenes") if args.scenes else list_scenes()
     weathers = [w.name for w in parse_weather(args.weathers)]
     methods, skipped = resolve_methods(args.methods)
     if skipped:
         print(f"note: method(s) {', '.join(skipped)} not registered (yet); skipped", file=sys.stderr)
     if not methods:
         raise NimbusError("no method to run; pass --methods (e.g. --methods 3dgs)")
-    presets = [p.strip() for p in args.preset.split(",") if p.strip()]
+    presets = split_names(args.preset, "--preset")
+    seeds = _seeds(args.seeds)
     executor = executor_from_args(args)
-    cells = build_cells(scenes, weathers, methods, presets, _seeds(args.seeds), args.size, parse_set_args(args.set))
+    cells = build_cells(scenes, weathers, methods, presets, seeds, args.size, parse_set_args(args.set))
     print(f"{len(cells)} cell(s): {len(scenes)} scene(s) x {len(weathers)} weather(s) x {len(methods)} method(s) "
-          f"x {len(presets)} preset(s) x {len(_seeds(args.seeds))} seed(s) -> {args.root}", file=sys.stderr)
+          f"x {len(presets)} preset(s) x {len(seeds)} seed(s) -> {args.root}", file=sys.stderr)
     outcome = run_grid(cells, args.root, executor, options_from_args(args), rerun=args.rerun, progress=not args.quiet)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
