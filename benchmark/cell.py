@@ -16,8 +16,8 @@ killed run leaves no half-written run passing for a finished one; a rerun remove
 
 :func:`run_cell` is the one way a cell runs, whoever asks (:mod:`benchmark.grid` for
 ``nimbus-bench run`` and ``tradeoff``).  The stability report trains on inputs of its own
-making, so it uses the steps below it: :func:`train_method` (the only call into a
-trainer), :func:`score_run`, and the questions it asks a trained model
+making, so it uses the steps below it: :func:`train_method` (the grid's and the
+stability report's call into the Runner), :func:`score_run`, and the questions it asks a trained model
 (:func:`model_parameters`, :func:`medium_composition`).
 """
 
@@ -240,8 +240,8 @@ def train_method(method_name: str, scene, config, out_dir: Path, *, seed: int, s
                  model_ready: Callable[[object], None] | None = None) -> tuple[dict, object]:
     """Train a registered method on a scene into the run folder ``out_dir``.
 
-    The benchmark's only call into a trainer: every cell, sweep point and stability run goes
-    through here.
+    The grid's and the stability report's one call into the Runner: every cell, sweep point and
+    stability run goes through here (the speed scripts and gpu_check build their Runners themselves).
 
     Parameters
     ----------

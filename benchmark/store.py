@@ -52,7 +52,6 @@ from nimbus.errors import NimbusError
 
 STORE_FILE = "results.jsonl"
 LOCK_DIR = "locks"
-RECORD_FORMAT = "nimbus-bench-cell/1"
 #: Columns of :func:`load_results` taken from each record as is (the rest stay in ``record``).
 SCALAR_COLUMNS = (
     "cell_id", "scene", "size", "weather", "method", "preset", "seed", "status", "error",

@@ -58,7 +58,7 @@ _EMULATED_MARK = "NIMBUS_EMULATED_CPU"
 def run(args: argparse.Namespace) -> int:
     import os
 
-    from benchmark.store import load_results, store_path
+    from benchmark.store import load_results, require_store
     from nimbus.utils.fs import atomic_write_text
 
     if args.emulate_cpu is not None:
@@ -76,9 +76,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         if args.root is None or args.reference is None:
             raise NimbusError("give --root ROOT and --reference FILE, or --regression for the CI grid")
-        if not store_path(args.root).is_file():
-            raise NimbusError(f"{store_path(args.root)} does not exist; run `nimbus-bench run --root {args.root}` "
-                              "first")
+        require_store(args.root)
         ref_path = Path(args.reference)
         if args.action == "check":
             reference = load_reference(ref_path)

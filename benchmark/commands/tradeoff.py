@@ -11,7 +11,6 @@ from benchmark.cell import DEFAULT_PRESET, DEFAULT_SIZE, Cell
 from benchmark.grid import add_run_arguments
 from benchmark.tradeoff import (DEFAULT_METHOD, DEFAULT_SCENE, DEFAULT_WEATHER, KNOBS, base_cell, build_sweep,
                                 parse_knobs, sweep_cells, to_markdown, tradeoff_rows, write_tradeoff)
-from nimbus.errors import NimbusError
 
 HELP = ("sweep the knobs that cost time (iterations, image scale, K, grid, SH degree, components): "
         "table + Pareto plot")
@@ -44,6 +43,7 @@ def run(args: argparse.Namespace) -> int:
     from benchmark.grid import executor_from_args, options_from_args, run_grid, say_failed
     from benchmark.store import ResultsStore
     from nimbus.config_set import parse_set_args
+    from nimbus.utils.fs import check_output_dir
 
     knobs = parse_knobs(args.knob)
     base = base_cell(args.scene, args.weather, args.method, args.preset, args.seed, args.size,
@@ -51,8 +51,7 @@ def run(args: argparse.Namespace) -> int:
     points = build_sweep(base, knobs or None)
     cells = sweep_cells(points)
     out = Path(args.out) if args.out else Path(args.root) / OUT_SUBDIR
-    if out.exists() and not out.is_dir():
-        raise NimbusError(f"--out {out} is a file; give a folder")
+    check_output_dir(out, overwrite=True)  # before the sweep trains anything (its files are rewritten in place)
     n_knobs = len(dict.fromkeys(p.knob for p in points))
     print(f"{len(cells)} cell(s) for {len(points)} (knob, value) point(s) of {n_knobs} knob(s) -> {args.root}",
           file=sys.stderr)
