@@ -82,6 +82,8 @@ class GaussianSplatting:
         centers = scene.camera_centers
         self.strategy = DefaultStrategy.from_config(config, scene.extent, centers.mean(0) if len(centers) else None)
         self.strategy_state = self.strategy.initialize_state()
+        #: The configured background colour [3], on the device once (not rebuilt every render).
+        self.background = torch.tensor(config.background, device=self.device)
         self.raster_config = RasterConfig(tile_size=config.tile_size,
                                           projection=ProjectionConfig(near=config.near_plane))
         self._order: list[int] = []
@@ -114,7 +116,7 @@ class GaussianSplatting:
                view_index: int | None = None) -> dict:
         """``rgb``, ``depth``, ``alpha`` and ``meta`` of ``camera`` (default: full SH degree, the configured
         background); 3DGS has no per-view extras, so ``view_index`` changes nothing."""
-        bg = background if background is not None else torch.tensor(self.cfg.background, device=self.device)
+        bg = self.background if background is None else background
         deg = self.cfg.sh_degree if sh_degree is None else sh_degree
         rgb, depth, alpha, meta = rasterize(self.gaussians(), camera, sh_degree=deg, background=bg,
                                             backend=self.cfg.backend, config=self.raster_config)

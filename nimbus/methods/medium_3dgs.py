@@ -208,7 +208,7 @@ class Medium3DGS(GaussianSplatting):
                view_index: int | None = None) -> dict:
         """The clean render of ``camera`` (``rgb``, ``depth``, ``alpha``, ``meta``) and the medium's extras
         ``transmission``, ``backscatter`` and ``degraded`` (see the module docstring)."""
-        bg = background if background is not None else torch.tensor(self.cfg.background, device=self.device)
+        bg = self.background if background is None else background
         out = super().render(camera, sh_degree, torch.zeros(3, device=self.device))
         foreground = out["rgb"]
         parts = compose_medium(foreground, out["depth"], out["alpha"],

@@ -55,8 +55,6 @@ from nimbus.utils.fs import atomic_write_json, atomic_write_text
 from nimbus.versions import software_versions
 
 LOG = "train_log.jsonl"
-#: Checkpoint keys the runner owns; the rest is the method's state_dict.
-RUNNER_KEYS = ("iteration", "train_time", "frame", "visible_steps")
 
 
 def peak_memory_mb(device: torch.device) -> float:
@@ -109,7 +107,6 @@ class Runner:
                  device: torch.device | None = None, checkpoints: bool = True,
                  on_log: Callable[[dict], None] | None = None) -> None:
         self.method_name = method_name
-        self.world_scene = scene
         self.frame = SceneFrame.of(scene)
         self.scene = self.frame.scene(scene)
         self.cfg = config
@@ -196,14 +193,12 @@ class Runner:
                 try:
                     step = self.method.train_iteration(it)
                 except TrainingDiverged as e:
-                    self.save_checkpoint(LAST_GOOD)
+                    kept = self._keep_last_good()
                     if e.what == "loss":
-                        raise NimbusError(f"the loss became {e.value} at iteration {it}; the last good state is "
-                                          f"in {self.out / LAST_GOOD}. Lower the learning rates (--set "
-                                          "lr_...=...) or check the input images") from None
-                    raise NimbusError(f"non-finite gradients at iteration {it}; the last good state is in "
-                                      f"{self.out / LAST_GOOD}. Lower the learning rates or check the "
-                                      "inputs") from None
+                        raise NimbusError(f"the loss became {e.value} at iteration {it}{kept}. Lower the learning "
+                                          "rates (--set lr_...=...) or check the input images") from None
+                    raise NimbusError(f"non-finite gradients at iteration {it}{kept}. Lower the learning rates or "
+                                      "check the inputs") from None
                 self.iteration = it
                 self.visible_steps += bool(step["visible"])
                 for kind, info in step["events"]:
@@ -258,9 +253,15 @@ class Runner:
 
     # --- checkpoints ---------------------------------------------------------------------
     def state_dict(self) -> dict:
-        """The checkpoint: the runner's keys (:data:`RUNNER_KEYS`) and the method's state_dict."""
+        """The checkpoint: the runner's keys (iteration, train_time, frame, visible_steps) and the method's state_dict."""
         return {"iteration": self.iteration, "train_time": float(self.train_time), "frame": self.frame.as_list(),
                 "visible_steps": self.visible_steps, **self.method.state_dict()}
+
+    def _keep_last_good(self) -> str:
+        """Save the last good state and say where (empty for a run without checkpoints: nothing was saved)."""
+        if not self.checkpoints:
+            return ""
+        return f"; the last good state is in {self.save_checkpoint(LAST_GOOD)}"
 
     def save_checkpoint(self, name: str = CHECKPOINT) -> Path:
         if not self.checkpoints:
