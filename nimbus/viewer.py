@@ -317,9 +317,12 @@ class Viewer:
         up = -np.mean([cam.R[1] for cam in cams], axis=0)
         up = up / max(np.linalg.norm(up), 1e-12)
         self.server.scene.set_up_direction(up)
+        # Start behind and above training view 0, looking where it looks: its frustum, its neighbours and the
+        # scene in sight (from view 0's own centre its frustum image would fill the window).
         first = cams[0]
-        self.server.initial_camera.position = first.center
-        self.server.initial_camera.look_at = first.center + first.R[2] * self._look_distance(first)
+        target = first.center + first.R[2] * self._look_distance(first)
+        self.server.initial_camera.position = first.center + 0.6 * (first.center - target) + 0.3 * up
+        self.server.initial_camera.look_at = target
         self.server.initial_camera.up = up
         self.server.initial_camera.fov = first.fov_y
         self.splats = self.server.scene.add_gaussian_splats("/splats", **splat_arrays(self.runner))

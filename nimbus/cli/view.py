@@ -6,11 +6,12 @@ Examples::
     nimbus-view runs/garden-nimbus --port 0         # any free port (printed)
     nimbus-view runs/garden-nimbus --host 0.0.0.0 --allow-remote   # reachable from other machines
 
-Ctrl-C stops the server.
+Ctrl-C (or a SIGTERM) stops the server.
 """
 
 from __future__ import annotations
 
+import signal
 import sys
 import threading
 from typing import Sequence
@@ -33,6 +34,10 @@ def build_parser() -> ArgumentParser:
     return p
 
 
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
 def _main(argv: Sequence[str] | None) -> int:
     from nimbus.cli.train import parse_device
     from nimbus.viewer import start_viewer
@@ -42,20 +47,23 @@ def _main(argv: Sequence[str] | None) -> int:
     config = ViewerConfig(host=args.host, port=args.port, allow_remote=args.allow_remote,
                           render_height=args.render_height, device=str(device))
     viewer = start_viewer(args.run, config)
+    # A kill (SIGTERM) stops the server as Ctrl-C does.
+    previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
-        r, renderer = viewer.runner, viewer.renderer
-        frame = renderer.frame_time(viewer.current_camera())
+        r, renderer, cam = viewer.runner, viewer.renderer, viewer.current_camera()
         print(f"{r.method_name} run {r.out}: iteration {r.iteration}, {r.method.num_gaussians} Gaussians; "
               f"layers: {', '.join(renderer.layers)}", file=sys.stderr)
-        cam = viewer.current_camera()
-        print(f"render {cam.width}x{cam.height} on {config.device}: {1000 * frame:.0f} ms a frame "
-              f"({1 / max(frame, 1e-9):.1f} fps)", file=sys.stderr)
+        for layer in renderer.layers[:2]:  # clean, and degraded (the ray march) for NimbusGS
+            frame = renderer.frame_time(cam, layer)
+            print(f"render {cam.width}x{cam.height} {layer} on {config.device}: {1000 * frame:.0f} ms a frame "
+                  f"({1 / max(frame, 1e-9):.1f} fps)", file=sys.stderr)
         print(f"nimbus-view: open {viewer.url} (Ctrl-C stops)", flush=True)
         threading.Event().wait()
     except KeyboardInterrupt:
         print("nimbus-view: stopped", file=sys.stderr)
     finally:
         viewer.stop()
+        signal.signal(signal.SIGTERM, previous)
     return 0
 
 
