@@ -425,7 +425,7 @@ def start_viewer(run_dir: str | Path, config: ViewerConfig = ViewerConfig()) -> 
     """
     check_address(config.host, config.port, config.allow_remote)
     if config.render_height < 8:
-        raise NimbusError(f"render height must be at least 8 pixels, got {config.render_height}")
+        raise NimbusError(f"--render-height must be at least 8 pixels, got {config.render_height}")
     runner = open_run(run_dir, config.device)
     import viser
 
