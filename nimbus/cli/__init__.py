@@ -1,1 +1,1 @@
-"""Command-line tools that live in the ``nimbus`` package (``nimbus-train``)."""
+"""Command-line tools that live in the ``nimbus`` package (``nimbus-train``, ``nimbus-view``)."""

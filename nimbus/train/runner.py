@@ -139,6 +139,20 @@ class Runner:
         if not os.access(run, os.W_OK | os.X_OK):
             raise NimbusError(f"{run} cannot be written (read-only or not ours); a resumed run writes its checkpoint "
                               "and outputs there. Fix its permissions or copy the run folder somewhere writable")
+        runner = cls.open(run, progress=progress, device=device)
+        runner._truncate_log(runner.iteration)
+        return runner
+
+    @classmethod
+    def open(cls, out_dir: str | os.PathLike, *, progress: bool = True,
+             device: torch.device | None = None) -> "Runner":
+        """The runner of run folder ``out_dir`` at its last checkpoint, read without changing anything in the
+        folder (``nimbus-view`` shows it; :meth:`resume` continues it).  A folder that is not a run, or whose
+        files do not fit, raises :class:`NimbusError`."""
+        run = Path(out_dir)
+        cfg_file, ckpt = run / "config.json", run / CHECKPOINT
+        if not cfg_file.is_file() or not ckpt.is_file():
+            raise NimbusError(f"{run} is not a run folder of nimbus-train (needs config.json and {CHECKPOINT})")
         saved = read_run_config(run)
         config_cls = type(get_method(saved["method"]).preset("tiny"))
         try:
@@ -149,7 +163,7 @@ class Runner:
         scene = load_scene_arg(saved["scene"], **saved["scene_load_args"])
         runner = cls(saved["method"], scene, config, run, seed=saved["seed"], scene_path=saved["scene"],
                      scene_load_args=saved["scene_load_args"], progress=progress, device=device)
-        runner.load_checkpoint(ckpt)
+        runner.load_checkpoint(ckpt, truncate_log=False)
         return runner
 
     # --- log -----------------------------------------------------------------------------
@@ -268,8 +282,8 @@ class Runner:
             return self.out / name
         return write_checkpoint(self.out / name, self.state_dict())
 
-    def load_checkpoint(self, path: str | os.PathLike) -> None:
-        """Restore the state saved in ``path`` and cut the training log back to its iteration.
+    def load_checkpoint(self, path: str | os.PathLike, *, truncate_log: bool = True) -> None:
+        """Restore the state saved in ``path`` and (``truncate_log``) cut the training log back to its iteration.
 
         A file that is not a checkpoint of tensors and plain values, a truncated one
         (:func:`~nimbus.train.checkpoint.read_checkpoint`) or one that does not fit this run raises
@@ -292,7 +306,8 @@ class Runner:
             raise NimbusError(f"checkpoint {path} does not fit this run ({e.__class__.__name__}: {str(e)[:200]}); "
                               "it was written for other settings or by another Nimbus version. Start a new run "
                               "with --out") from None
-        self._truncate_log(self.iteration)
+        if truncate_log:
+            self._truncate_log(self.iteration)
 
     def _truncate_log(self, iteration: int) -> None:
         """Drop the log lines written after the checkpoint at ``iteration`` (the resumed run writes them again).

@@ -1,0 +1,206 @@
+"""nimbus-view: the viewer of a trained run (served on localhost, its scene, its renders, its refusals)."""
+
+from __future__ import annotations
+
+import shutil
+import socket
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from nimbus.cli.train import main as train_main
+from nimbus.cli.view import main as view_main
+from nimbus.errors import NimbusError
+from nimbus.train.checkpoint import CHECKPOINT
+from nimbus.viewer import (LAYERS, ViewerConfig, camera_pose_wxyz, check_address, scaled_extinction, start_viewer,
+                           viewer_camera)
+
+QUICK = ["--preset", "tiny", "--set", "iterations=4", "--set", "checkpoint_interval=2", "--quiet"]
+
+
+def _train(out: Path, method: str, *extra: str) -> Path:
+    with pytest.raises(SystemExit) as info:
+        train_main(["builtin:garden:tiny", "--method", method, *QUICK, *extra, "--out", str(out)])
+    assert info.value.code == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def nimbus_run(tmp_path_factory):
+    """A NimbusGS run with every component, so T, P and R exist (stage 2 from iteration 3)."""
+    return _train(tmp_path_factory.mktemp("runs") / "nimbus", "nimbus-full", "--set", "m_init=2")
+
+
+@pytest.fixture(scope="module")
+def viewer(nimbus_run):
+    """The viewer of ``nimbus_run`` on a free port; ``viewer.files_before`` is the run folder before it opened."""
+    files_before = snapshot(nimbus_run)
+    v = start_viewer(nimbus_run, ViewerConfig(port=0, render_height=36))
+    v.files_before = files_before
+    yield v
+    v.stop()
+
+
+def snapshot(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _can_bind(port: int) -> bool:
+    with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("127.0.0.1", port))
+            s.listen()
+        except OSError:
+            return False
+    return True
+
+
+# --- serving ------------------------------------------------------------------------------------
+def test_answers_http_on_localhost(viewer):
+    assert viewer.url == f"http://127.0.0.1:{viewer.port}" and viewer.port > 0
+    with urllib.request.urlopen(viewer.url + "/", timeout=30) as response:
+        assert response.status == 200
+        body = response.read()
+    assert b"<html" in body[:2000].lower()
+
+
+def test_scene_holds_the_splats_and_one_frustum_per_view(viewer):
+    scene = viewer.runner.scene
+    assert viewer.nodes[0] == "/splats"
+    frustums = viewer.nodes[1:]
+    assert len(frustums) == len(scene.views) == len(set(frustums))
+    assert sum(n.startswith("/cameras/test/") for n in frustums) == len(scene.test_views) > 0
+    assert sum(n.startswith("/cameras/train/") for n in frustums) == len(scene.train_views) > 0
+    assert viewer.splats.centers.shape == (viewer.runner.method.num_gaussians, 3)
+
+
+def test_viewing_leaves_the_run_folder_as_it_was(viewer, nimbus_run):
+    viewer.draw_frame()
+    assert snapshot(nimbus_run) == viewer.files_before
+
+
+# --- rendering ----------------------------------------------------------------------------------
+def test_viewer_camera_is_our_camera_convention(viewer):
+    """A training camera through viser's (wxyz, position, fov, aspect) and back is the same camera."""
+    cam = viewer.runner.scene.train_views[1].camera
+    back = viewer_camera(camera_pose_wxyz(cam), cam.center, cam.fov_y, cam.width / cam.height, cam.height)
+    assert (back.width, back.height) == (cam.width, cam.height)
+    np.testing.assert_allclose(back.world_to_camera, cam.world_to_camera, atol=1e-9)
+    np.testing.assert_allclose([back.fx, back.fy, back.cx, back.cy], [cam.fx, cam.fy, cam.cx, cam.cy], rtol=1e-9)
+    ours = viewer.renderer.render(back)
+    method = viewer.runner.method.render(cam)["rgb"].detach().numpy()
+    np.testing.assert_allclose(ours, np.clip(method, 0, 1), atol=1e-5)
+
+
+@pytest.mark.parametrize("layer", LAYERS)
+def test_every_layer_renders_a_frame_of_the_camera(viewer, layer):
+    assert viewer.renderer.layers == LAYERS
+    cam = viewer_camera([1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -2.0], 0.8, 4 / 3, 30)
+    image = viewer.renderer.render(cam, layer)
+    assert image.shape == (30, 40, 3) and image.dtype == np.float32
+    assert np.isfinite(image).all() and image.min() >= 0 and image.max() <= 1
+
+
+def test_extinction_slider_rehazes_without_changing_the_model(viewer):
+    method = viewer.runner.method
+    cam = viewer.runner.scene.train_views[0].camera
+    params = {k: v.clone() for k, v in method.medium.field.state_dict().items()}
+    clean = viewer.renderer.render(cam, "clean")
+    T = {f: viewer.renderer.render(cam, "T", extinction=f)[..., 0] for f in (0.0, 1.0, 3.0)}
+    np.testing.assert_allclose(T[0.0], 1.0, atol=1e-4)  # no medium: everything arrives
+    assert (T[3.0] <= T[1.0] + 1e-6).all() and T[3.0].mean() < T[1.0].mean()  # more extinction, less light
+    np.testing.assert_allclose(viewer.renderer.render(cam, "degraded", extinction=0.0), clean, atol=1e-3)
+    for k, v in method.medium.field.state_dict().items():
+        assert torch.equal(v, params[k]), k
+    with scaled_extinction(method.medium, 2.0):
+        assert not torch.equal(method.medium.field.log_scale.detach(), params["log_scale"])
+    assert torch.equal(method.medium.field.log_scale.detach(), params["log_scale"])
+
+
+def test_residual_is_the_nearest_training_views(viewer):
+    """At a training camera, R is what the method's protocol gives for that view."""
+    method = viewer.runner.method
+    cam = method.train_views[2].camera
+    expected = method.render(cam, view_index=2)["residual"].detach().numpy()
+    np.testing.assert_allclose(viewer.renderer.render(cam, "R"), np.clip(expected, 0, 1), atol=1e-6)
+
+
+def test_a_frame_goes_to_the_panel_with_its_time(viewer):
+    viewer.layer.value = "degraded"
+    image = viewer.draw_frame()
+    viewer.layer.value = "clean"
+    assert image.shape[0] == 36 and viewer.image.image.shape == image.shape
+    assert viewer.frame_s > 0 and "fps" in viewer.timing.content
+
+
+def test_a_3dgs_run_shows_the_clean_render_only(tmp_path):
+    run = _train(tmp_path / "gs", "3dgs")
+    v = start_viewer(run, ViewerConfig(port=0, render_height=12))
+    try:
+        assert v.renderer.layers == ("clean",)
+        cam = v.current_camera()
+        assert v.renderer.render(cam).shape == (12, cam.width, 3)
+        with pytest.raises(ValueError, match="layer"):
+            v.renderer.render(cam, "T")
+    finally:
+        v.stop()
+
+
+# --- refusals and stopping ----------------------------------------------------------------------
+def test_non_local_bind_is_refused_unless_asked():
+    with pytest.raises(NimbusError, match="--allow-remote"):
+        check_address("0.0.0.0", 0, allow_remote=False)
+    check_address("0.0.0.0", 0, allow_remote=True)
+    check_address("localhost", 0, allow_remote=False)
+
+
+def test_cli_refuses_a_non_local_host_in_one_line(nimbus_run, capsys):
+    with pytest.raises(SystemExit) as info:
+        view_main([str(nimbus_run), "--host", "0.0.0.0", "--port", "0"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "--allow-remote" in err[0]
+
+
+def test_busy_port_is_an_error_not_another_port(nimbus_run):
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        with pytest.raises(NimbusError, match=f"port {port} .* in use"):
+            start_viewer(nimbus_run, ViewerConfig(port=port))
+
+
+def test_stop_frees_the_port_and_the_render_thread(nimbus_run):
+    v = start_viewer(nimbus_run, ViewerConfig(port=0, render_height=12))
+    port = v.port
+    assert not _can_bind(port)
+    with urllib.request.urlopen(v.url + "/", timeout=30) as response:
+        assert response.status == 200
+    v.stop()
+    assert not v._thread.is_alive()
+    assert _can_bind(port)
+
+
+@pytest.mark.parametrize("case", ["missing", "file", "empty", "corrupt"])
+def test_bad_run_folder_is_one_error_line(nimbus_run, tmp_path, capsys, case):
+    run = tmp_path / "run"
+    if case == "file":
+        run.write_text("not a folder")
+    elif case == "empty":
+        run.mkdir()
+    elif case == "corrupt":
+        shutil.copytree(nimbus_run, run)
+        (run / CHECKPOINT).write_bytes(b"\x00garbage")
+    with pytest.raises(SystemExit) as info:
+        view_main([str(run), "--port", "0"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: "), err
+    assert {"missing": "does not exist", "file": "not a run folder", "empty": "needs config.json",
+            "corrupt": "checkpoint"}[case] in err[0]
+
