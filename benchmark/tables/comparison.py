@@ -6,6 +6,10 @@ rows, scenes as column groups plus an ``Average`` group, each group PSNR↑ / SS
 Values are means over the seeds of a cell; ``Average`` is the mean over scenes and is left
 empty for a method missing a scene.  Best and second best are marked per column
 (:func:`benchmark.tables.model.rank_marks`).  Every table states its SSIM protocol and LPIPS network.
+
+The "Ours" row is :data:`~benchmark.tables.results.COMPARISON_OURS` (``nimbus``, components chosen
+by ``auto``), labelled with its configuration; the ablation tables' "Ours" is ``nimbus-full``, and
+each table's note says both.
 """
 
 from __future__ import annotations
@@ -14,7 +18,8 @@ from typing import TYPE_CHECKING, Sequence
 
 from benchmark.data import PAPER_DIR, read_csv
 from benchmark.tables.model import AVERAGE, Block, LongFormat, Row, Table
-from benchmark.tables.results import METRIC_COLUMNS, METRICS, average, finished, ordered, protocols, scene_means
+from benchmark.tables.results import (COMPARISON_OURS, METRIC_COLUMNS, METRICS, average, finished, ordered, protocols,
+                                      scene_means)
 
 if TYPE_CHECKING:  # importlib.resources.abc is Python 3.11+
     from importlib.resources.abc import Traversable
@@ -54,7 +59,8 @@ def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]
         cells = scene_means(sub, "method_label")
         rows = []
         for m in ordered(sub["method_label"], method_order):
-            row = Row(m, fields={"method": m})
+            ours = sub.loc[sub["method_label"] == m, "method"].iloc[0] == COMPARISON_OURS.method
+            row = Row(COMPARISON_OURS.row_label(m) if ours else m, fields={"method": m})
             for s in scenes:
                 if (m, s) in cells:
                     means, n = cells[(m, s)]
@@ -66,7 +72,7 @@ def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]
         caption = weather_caption(weather)
         out.append(_table(weather, f"weather_{weather}", "", scenes, rows, title=caption,
                           notes=[f"SSIM protocol: {ssim_protocol}; LPIPS: {lp}; mean over seeds, Average = mean "
-                                 "over scenes"],
+                                 f"over scenes; {COMPARISON_OURS.note()}"],
                           what=f"ours: method comparison, {caption}", csv=CSV,
                           fields={"weather": weather, "ssim_protocol": ssim_protocol, "lpips_net": lp}))
     return out, []
