@@ -28,7 +28,10 @@ DEFAULT_ROOT = "bench_runs"
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenes", default=None, help="comma list of built-in scenes (default: all of them)")
-    p.add_argument("--weathers", default="all", help="comma list of settings (H, R, S, H+R, ...) or all")
+    p.add_argument("--weathers", default="all",
+                   help="comma list of settings (H, R, S, H+R, ...) or all, in the default (onerestore: beta and "
+                        "airlight drawn per view) protocol; SETTING@physical (e.g. H@physical, all@physical) for "
+                        "the physical protocol's family (one medium per scene), tabled apart")
     p.add_argument("--methods", default="default",
                    help="comma list of registered methods; default: nimbus and 3dgs (those registered)")
     p.add_argument("--preset", default=DEFAULT_PRESET, help="trainer preset(s), comma list: tiny, fast, paper")
@@ -54,10 +57,10 @@ def run(args: argparse.Namespace) -> int:
     from benchmark.tables.summary import summary_table
     from nimbus.data.builtin import list_scenes
     from nimbus.config_set import parse_set_args
-    from weather_synth.settings import parse_weather
+    from weather_synth.settings import parse_family_weather
 
     scenes = split_names(args.scenes, "--scenes") if args.scenes else list_scenes()
-    weathers = [w.name for w in parse_weather(args.weathers)]
+    weathers = [w.name for w in parse_family_weather(args.weathers)]
     methods, skipped = resolve_methods(args.methods)
     if skipped:
         print(f"note: method(s) {', '.join(skipped)} not registered (yet); skipped", file=sys.stderr)
