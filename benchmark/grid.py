@@ -43,8 +43,9 @@ from benchmark.cell import (DEFAULT_SIZE, Cell, CellOptions, error_record, make_
 from benchmark.store import FileLock, ResultsStore
 from nimbus.errors import NimbusError
 
-#: Methods of the default benchmark, in table order (those not registered are skipped).
-DEFAULT_METHODS = ("nimbus", "3dgs")
+#: Methods of the default benchmark, in table order (those not registered are skipped): NimbusGS, plain 3DGS,
+#: and the two-stage restore-then-3DGS baseline.
+DEFAULT_METHODS = ("nimbus", "3dgs", "restore-3dgs")
 
 
 # --- cells -------------------------------------------------------------------------------

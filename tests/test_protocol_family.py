@@ -14,7 +14,7 @@ import pytest
 
 from benchmark.cell import CellOptions, data_dir
 from benchmark.cli import TOOL
-from benchmark.grid import InlineExecutor, build_cells, run_grid
+from benchmark.grid import InlineExecutor, build_cells, resolve_methods, run_grid
 from benchmark.store import load_results
 from benchmark.tables.comparison import tables as comparison_tables
 from benchmark.tables.summary import summary_table
@@ -48,6 +48,10 @@ def test_cells_and_data_of_a_family(tmp_path):
     assert data_dir(tmp_path, physical) == tmp_path / "data" / "garden-tiny@physical" / "H"
 
 
+def test_default_methods_include_the_restore_baseline():
+    assert resolve_methods(None) == (["nimbus", "3dgs", "restore-3dgs"], [])
+
+
 def test_physical_family_end_to_end(tmp_path, capsys):
     """synthesis -> two tiny cells (H in each family) -> store -> tables with a physical table of its own."""
     root = tmp_path / "bench"
@@ -61,7 +65,8 @@ def test_physical_family_end_to_end(tmp_path, capsys):
     name = sorted(p.name for p in (plain / "images").iterdir())[0]
     assert not np.array_equal(read_image(plain / "images" / name), read_image(physical / "images" / name))
     df = load_results(root)
-    assert sorted(df["cell_id"]) == ["garden-tiny_H@physical_3dgs_tiny_s0", "garden-tiny_H_3dgs_tiny_s0"]
+    assert sorted(df["cell_id"]) == sorted(c.cell_id for c in cells)
+    assert cells[1].cell_id.startswith("garden-tiny_H@physical_3dgs_tiny_s0")
     assert sorted(df["weather"]) == ["H", "H@physical"]
     tables = {t.key: t for t in comparison_tables(df, ["3dgs"])[0]}
     assert list(tables) == ["weather_H", "weather_H_physical"]
