@@ -86,3 +86,14 @@ def test_physical_family_end_to_end(tmp_path, capsys):
     rows = (out / "comparisons.csv").read_text().splitlines()
     assert rows[0].split(",")[:3] == ["weather", "protocol", "method"]
     assert any(r.startswith("H@physical,physical,3dgs,") for r in rows)
+
+
+def test_synth_help_names_what_each_protocol_draws(capsys):
+    from weather_synth.cli import main
+
+    for argv in (["--help"], ["degrade", "--help"]):
+        with pytest.raises(SystemExit):
+            main(argv)
+        text = " ".join(capsys.readouterr().out.split())
+        assert "onerestore" in text and "beta and airlight drawn per view" in text, argv
+        assert "physical: one medium per scene" in text, argv
