@@ -4,7 +4,9 @@ A benchmark root holds::
 
     ROOT/scenes/<scene>-<size>/           the clean built-in scene (rendered once)
     ROOT/data/<scene>-<size>/<SETTING>/   its degraded copies (``nimbus-synth degrade`` layout,
-                                          fixed synthesis seed :data:`SYNTH_SEED`)
+                                          protocol :data:`SYNTH_PROTOCOL`, fixed seed :data:`SYNTH_SEED`)
+    ROOT/data/<scene>-<size>@<PROTOCOL>/<SETTING>/
+                                          the same in another protocol family (``--weathers H@physical``)
     ROOT/runs/<cell-id>/                  one trainer run directory per cell
     ROOT/results.jsonl                    one record per finished cell (:mod:`benchmark.store`)
 
@@ -63,7 +65,8 @@ class Cell:
     scene : str
         Built-in scene name (``garden``, ``street``, ``tabletop``).
     weather : str
-        Weather setting name (``H``, ``R+S``, ...; :mod:`weather_synth.settings`).
+        Weather setting name (``H``, ``R+S``, ...), ``@PROTOCOL`` for a setting of another synthesis
+        protocol's family (``H@physical``; :func:`weather_synth.settings.parse_family_setting`).
     method : str
         Registered method name (:mod:`nimbus.methods.registry`).
     preset : str
@@ -139,9 +142,20 @@ def scene_dir(root: Path, cell: Cell) -> Path:
     return Path(root) / "scenes" / cell.data_name
 
 
+def family_dir(root: Path, data_name: str, protocol: str) -> Path:
+    """The folder of a scene's degraded settings in one protocol family (the default family's: ``data/<scene>``)."""
+    from weather_synth.settings import FAMILY_SEPARATOR
+
+    return Path(root) / "data" / (data_name if protocol == SYNTH_PROTOCOL else
+                                  f"{data_name}{FAMILY_SEPARATOR}{protocol}")
+
+
 def data_dir(root: Path, cell: Cell) -> Path:
     """The degraded setting folder a cell trains on."""
-    return Path(root) / "data" / cell.data_name / cell.weather
+    from weather_synth.settings import parse_family_setting
+
+    family = parse_family_setting(cell.weather)
+    return family_dir(root, cell.data_name, family.protocol) / family.setting.name
 
 
 def run_dir(root: Path, cell: Cell) -> Path:
@@ -161,8 +175,8 @@ def write_clean_scene(scene: str, size: str, out: Path, progress: bool = False) 
 def synthesize(clean: Path, out: Path, settings: Sequence[str], config=None, *, progress: bool, source: str) -> None:
     """Degrade the scene in ``clean`` into one ``nimbus-synth degrade`` setting folder per setting under ``out``.
 
-    ``config`` is a :mod:`weather_synth.config` synthesis config (default: the benchmark's,
-    :data:`SYNTH_PROTOCOL` with seed :data:`SYNTH_SEED`).
+    ``settings`` are plain setting names (no ``@``); ``config`` is a :mod:`weather_synth.config`
+    synthesis config (default: the benchmark's, :data:`SYNTH_PROTOCOL` with seed :data:`SYNTH_SEED`).
 
     Raises
     ------
@@ -188,16 +202,20 @@ def prepare_data(root: str | os.PathLike, cells: Iterable[Cell], progress: bool 
     prepared under its data lock: a second run waits for the first, then finds the data
     there, instead of replacing folders the first one's cells are reading.
     """
+    from weather_synth.config import protocol_config
     from weather_synth.dataset import MANIFEST
+    from weather_synth.settings import parse_family_setting
 
     root = Path(root)
-    need: dict[Cell, list[str]] = {}
+    need: dict[Cell, dict[str, list[str]]] = {}  # scene -> protocol family -> setting names
     for c in cells:
         key = Cell(c.scene, "", "", size=c.size)
-        if c.weather not in need.setdefault(key, []):
-            need[key].append(c.weather)
+        family = parse_family_setting(c.weather)
+        names = need.setdefault(key, {}).setdefault(family.protocol, [])
+        if family.setting.name not in names:
+            names.append(family.setting.name)
     store = ResultsStore(root)
-    for key, weathers in need.items():
+    for key, families in need.items():
         lock = store.data_lock(key.data_name)
         if not lock.acquire():
             holder = lock.holder()
@@ -210,12 +228,15 @@ def prepare_data(root: str | os.PathLike, cells: Iterable[Cell], progress: bool 
             if log and not (clean / "manifest.json").is_file():
                 log(f"rendering built-in scene {key.scene} ({key.size}) -> {clean}")
             write_clean_scene(key.scene, key.size, clean, progress=progress)
-            out = root / "data" / key.data_name
-            missing = [w for w in weathers if not (out / w / MANIFEST).is_file()]
-            if missing:
-                if log:
-                    log(f"synthesising {', '.join(missing)} for {key.data_name} -> {out}")
-                synthesize(clean, out, missing, progress=progress, source=f"builtin:{key.scene}:{key.size}")
+            for protocol, weathers in families.items():
+                out = family_dir(root, key.data_name, protocol)
+                missing = [w for w in weathers if not (out / w / MANIFEST).is_file()]
+                if missing:
+                    if log:
+                        family = "" if protocol == SYNTH_PROTOCOL else f" ({protocol} protocol)"
+                        log(f"synthesising {', '.join(missing)}{family} for {key.data_name} -> {out}")
+                    synthesize(clean, out, missing, protocol_config(protocol, SYNTH_SEED), progress=progress,
+                               source=f"builtin:{key.scene}:{key.size}")
         finally:
             lock.release()
 

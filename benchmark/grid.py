@@ -43,8 +43,9 @@ from benchmark.cell import (DEFAULT_SIZE, Cell, CellOptions, error_record, make_
 from benchmark.store import FileLock, ResultsStore
 from nimbus.errors import NimbusError
 
-#: Methods of the default benchmark, in table order (those not registered are skipped).
-DEFAULT_METHODS = ("nimbus", "3dgs")
+#: Methods of the default benchmark, in table order (those not registered are skipped): NimbusGS, plain 3DGS,
+#: and the two-stage restore-then-3DGS baseline.
+DEFAULT_METHODS = ("nimbus", "3dgs", "restore-3dgs")
 
 
 # --- cells -------------------------------------------------------------------------------
@@ -83,17 +84,17 @@ def build_cells(scenes: Sequence[str], weathers: Sequence[str], methods: Sequenc
     Raises
     ------
     NimbusError
-        Unknown scene, size, weather, method or preset, a negative seed, or an override the
-        method's config does not have.
+        Unknown scene, size, weather (``H+R``, ``H+R@physical``: :mod:`weather_synth.settings`), method
+        or preset, a negative seed, or an override the method's config does not have.
     """
     from nimbus.data.builtin import get_scene, get_size
     from nimbus.methods.registry import get_method
-    from weather_synth.settings import parse_setting
+    from weather_synth.settings import parse_family_setting
 
     get_size(size)
     for s in scenes:
         get_scene(s)
-    weathers = [parse_setting(w).name for w in weathers]
+    weathers = [parse_family_setting(w).name for w in weathers]
     for seed in seeds:
         if seed < 0:
             raise NimbusError(f"seeds must be non-negative, got {seed}")

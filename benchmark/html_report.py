@@ -291,7 +291,8 @@ def view_grids(root: Path, recs: list[dict], images: ImageWriter, options: Repor
     from benchmark.score import ImageIndex
     from nimbus.data.images import read_image
     from nimbus.metrics import peak_signal_noise_ratio
-    from weather_synth.settings import ALL_SETTING_NAMES, parse_setting
+    from benchmark.cell import family_dir
+    from weather_synth.settings import ALL_SETTING_NAMES, parse_family_setting
 
     out = []
     ok = [r for r in recs if r.get("status") == "ok" and r.get("run_dir")]
@@ -303,7 +304,8 @@ def view_grids(root: Path, recs: list[dict], images: ImageWriter, options: Repor
             order = ordered((r["method"] for r in cells), options.method_order)
             cells.sort(key=lambda r: order.index(r["method"]))
             labels = column_labels(cells)
-            data = root / "data" / scene / w
+            family = parse_family_setting(w)
+            data = family_dir(root, scene, family.protocol) / family.setting.name
             names = ordered(v["name"] for r in cells for v in (r.get("per_view") or []))
             if not names and (data / "test_list.txt").is_file():
                 names = (data / "test_list.txt").read_text().split()
@@ -331,7 +333,7 @@ def view_grids(root: Path, recs: list[dict], images: ImageWriter, options: Repor
                             + "</td>")
                 rows.append("<tr>" + "".join(figs) + "</tr>")
             heads = ["view", "degraded input", *labels, "clean"]
-            out.append(f"<h4>{e(scene)} · {e(parse_setting(w).description)} ({e(w)})</h4>")
+            out.append(f"<h4>{e(scene)} · {e(family.description)} ({e(w)})</h4>")
             out.append('<div class="wide"><table class="views"><thead><tr>'
                        + "".join(f"<th>{e(h)}</th>" for h in heads) + "</tr></thead><tbody>\n"
                        + "\n".join(rows) + "</tbody></table></div>")

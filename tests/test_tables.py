@@ -12,6 +12,7 @@ from benchmark.cli import TOOL
 from benchmark.store import ResultsStore, load_results
 from benchmark.tables.comparison import tables as comparison_tables
 from benchmark.tables.model import rank_marks
+from benchmark.tables.results import ABLATION_OURS, COMPARISON_OURS
 from benchmark.tables.summary import summary_table
 from benchmark.tables.writer import to_csv, to_latex, to_markdown
 from nimbus.cli_util import run_cli
@@ -27,6 +28,8 @@ VALUES = {
     "R": [("nimbus", "garden", 25.0, 0.8, 0.2), ("3dgs", "garden", 24.0, 0.7, 0.3),
           ("3dgs", "street", 22.0, 0.6, 0.3)],
 }
+#: The label of the per-weather tables' "Ours" row (the ``nimbus`` method).
+OURS = COMPARISON_OURS.label
 
 
 def records(ssim_protocol="3dgs", seeds=(0,)):
@@ -68,19 +71,42 @@ def test_rank_marks():
 def test_tables_from_store(tables):
     assert list(tables) == ["H", "R"]  # error-only setting S has no table
     h = tables["H"]
-    assert h.blocks[0].labels == ["nimbus", "3dgs", "restore+3dgs"] and h.groups == ["garden", "street", "Average"]
-    assert h.row("nimbus").values[("Average", "psnr")] == pytest.approx(22.0)
+    assert h.blocks[0].labels == [OURS, "3dgs", "restore+3dgs"] and h.groups == ["garden", "street", "Average"]
+    assert h.row(OURS).values[("Average", "psnr")] == pytest.approx(22.0)
     assert h.marks("Average", "psnr") == [1, 2, None]
     assert h.marks("garden", "ssim") == [1, None, 2]
     assert h.marks("street", "lpips") == [1, None, 2]
     r = tables["R"]
-    assert r.row("nimbus").values[("Average", "psnr")] is None  # a missing scene leaves the average empty
+    assert r.row(OURS).values[("Average", "psnr")] is None  # a missing scene leaves the average empty
     assert r.row("3dgs").values[("Average", "psnr")] == pytest.approx(23.0)
 
 
 def _latex_rows(tex: str) -> list[str]:
     body = tex.split(r"\midrule", 1)[1].split(r"\bottomrule", 1)[0]
     return [row for row in body.split(r"\\") if row.strip()]
+
+
+def test_ours_row_names_its_method(tables):
+    """The per-weather "Ours" row is ``nimbus`` (components by auto) and says so; the note names the
+    ablations' Ours too, so the two are not read as one configuration."""
+    h = tables["H"]
+    assert COMPARISON_OURS.method == "nimbus" and OURS == "Ours (nimbus: components by auto)"
+    assert h.row(OURS).fields["method"] == "nimbus"
+    assert h.row(OURS).values[("garden", "psnr")] == 21.0  # the nimbus record's value
+    note = " ".join(h.notes)
+    assert "Ours = nimbus (components by auto)" in note and f"Ours is {ABLATION_OURS.method}" in note
+    md = to_markdown(h)
+    assert "| Ours (nimbus: components by auto) |" in md and "Ours = nimbus (components by auto)" in md
+    assert "Ours (nimbus: components by auto)" in to_latex(h)
+
+
+def test_ours_row_label_keeps_the_preset(tmp_path):
+    store = ResultsStore(tmp_path)
+    for r in records() + [dict(r, cell_id=r["cell_id"] + "-fast", preset="fast") for r in records()[:1]]:
+        store.append(r)
+    h = comparison_tables(load_results(tmp_path), ["nimbus"])[0][0]
+    assert {f"{OURS} (tiny)", f"{OURS} (fast)", "3dgs (tiny)"} <= set(h.blocks[0].labels)
+    assert h.row(f"{OURS} (fast)").fields["method"] == "nimbus (fast)"
 
 
 def test_latex_structure_and_marks(tables):
@@ -102,7 +128,7 @@ def test_latex_structure_and_marks(tables):
     for row in rows:
         assert row.count("&") == ncols - 1
     nimbus, gs, restore = (re.split(r"\s*&\s*", row.strip()) for row in rows)
-    assert nimbus[0] == "nimbus" and restore[0] == "restore+3dgs"
+    assert nimbus[0] == "Ours (nimbus: components by auto)" and restore[0] == "restore+3dgs"
     assert all(c.startswith(r"\first{") for c in nimbus[1:])
     assert gs[1] == r"\second{18.00}" and gs[2] == "0.500" and restore[2] == r"\second{0.600}"
     assert r"\providecommand{\first}[1]{\cellcolor{red!25}{#1}}" in tex
@@ -125,7 +151,7 @@ def test_markdown_tables(tables):
     assert {line.count("|") for line in rows} == {10 + 1}  # method + 3 groups x 3 metrics
     assert re.fullmatch(r"\|(:?-+:?\|)+", rows[1])
     cells = [c.strip() for c in rows[2].strip("|").split("|")]
-    assert cells[0] == "nimbus" and all(c.startswith("**") for c in cells[1:])
+    assert cells[0] == OURS and all(c.startswith("**") for c in cells[1:])
     gs = [c.strip() for c in rows[3].strip("|").split("|")]
     assert gs[1] == "_18.00_" and gs[2] == "0.500"
     assert "SSIM protocol: 3dgs" in md and "LPIPS: lpips-vgg-v0.1" in md
@@ -148,8 +174,8 @@ def test_seeds_are_averaged_and_mixed_protocols_refused(tmp_path):
     for r in records(seeds=(0, 1)):
         store.append(r)
     (h, _), _ = comparison_tables(load_results(tmp_path / "a"))
-    assert h.row("nimbus").values[("garden", "psnr")] == pytest.approx(21.5)
-    assert h.row("nimbus").group_fields["garden"]["seeds"] == 2
+    assert h.row(OURS).values[("garden", "psnr")] == pytest.approx(21.5)
+    assert h.row(OURS).group_fields["garden"]["seeds"] == 2
     store = ResultsStore(tmp_path / "b")
     for r in records() + [dict(records("dmpix")[0], cell_id="other")]:
         store.append(r)

@@ -15,7 +15,7 @@ from benchmark.store import ResultsStore, load_results
 from benchmark.tables import ablation, runtime
 from benchmark.tables.ablation import ABLATIONS, OURS
 from benchmark.tables.model import rank_marks
-from benchmark.tables.results import METRIC_COLUMNS, METRICS
+from benchmark.tables.results import ABLATION_OURS, COMPARISON_OURS, METRIC_COLUMNS, METRICS
 from benchmark.tables.runtime import COLUMNS as RUNTIME_COLUMNS
 from benchmark.tables.writer import to_csv, to_latex, to_markdown
 from nimbus.cli_util import run_cli
@@ -50,6 +50,8 @@ def records(preset="tiny", device="cpu"):
     return out
 
 
+#: The label of the ablation tables' "Ours" row (the ``nimbus-full`` method).
+OURS_LABEL = ABLATION_OURS.label
 HIGHER_IS_BETTER = {c.key: c.higher_is_better for c in METRIC_COLUMNS}
 DECIMALS = {c.key: c.decimals for c in METRIC_COLUMNS}
 
@@ -89,6 +91,35 @@ def test_ablation_rows_are_registered_methods():
         assert labels
 
 
+def test_ours_row_is_the_base_every_variant_changes_one_thing_of(built):
+    """The ablation "Ours" row is nimbus-full and says so; each variant row's method is that same
+    method's config with exactly the field(s) it ablates changed, so the row's difference to "Ours"
+    is that one change."""
+    import dataclasses
+
+    from nimbus.methods.registry import get_method
+
+    assert OURS == ABLATION_OURS.method == "nimbus-full" and OURS_LABEL == "Ours (nimbus-full: csm+plm+ggs)"
+    base = dataclasses.asdict(get_method(OURS).preset("tiny"))
+    for spec in ABLATIONS:
+        for b in spec.blocks:
+            assert [r.method for r in b.rows].count(OURS) <= 1
+            for r in b.rows:
+                if r.method == OURS:
+                    continue
+                changed = {k for k, v in dataclasses.asdict(get_method(r.method).preset("tiny")).items()
+                           if base[k] != v}
+                if spec.key == "ablation_minit":  # the schedule's own M_init (4k) is the base itself
+                    assert changed <= {"m_init"}, (r.method, changed)
+                else:
+                    assert len(changed) == 1, (r.method, changed)
+    t = built[0]["ablation_components"]
+    note = " ".join(t.notes)
+    assert "Ours = nimbus-full (csm+plm+ggs)" in note and f"Ours is {COMPARISON_OURS.method}" in note
+    assert all(t.row(OURS_LABEL, i).fields["method"] == OURS for i in range(3))
+    assert "| Ours (nimbus-full: csm+plm+ggs) |" in to_markdown(t)
+
+
 def test_tables_built_and_skipped(built):
     tables, skipped = built
     assert list(tables) == ["ablation_components", "ablation_ggs", "ablation_minit", "runtime"]
@@ -99,8 +130,8 @@ def test_component_values_marks_and_missing(built):
     t = built[0]["ablation_components"]
     assert [b.fields["weather"] for b in t.blocks] == ["H", "R", "H+R+S"] and t.groups == ["Average"]
     hazy = [r.label for r in t.blocks[0].rows]
-    assert hazy == ["Gaussian-Driven Extinction", "Uniform Extinction", "w/o CSM", "Ours"]
-    assert t.row("Ours", 0).values[("Average", "psnr")] == pytest.approx(22.0)
+    assert hazy == ["Gaussian-Driven Extinction", "Uniform Extinction", "w/o CSM", OURS_LABEL]
+    assert t.row(OURS_LABEL, 0).values[("Average", "psnr")] == pytest.approx(22.0)
     assert t.row("Uniform Extinction", 0).values[("Average", "ssim")] == pytest.approx(0.65)
     assert t.row("w/o CSM", 0).values.get(("Average", "psnr")) is None  # not run: missing, never zero
     assert t.marks("Average", "psnr", 0) == [None, 2, None, 1]
@@ -157,7 +188,7 @@ def test_latex_marks_and_missing_cells(built):
     _, _, rows = _latex_parts(tex)
     cells = [[c.strip() for c in r.split("&")] for r in rows]
     ours_hazy = cells[3]
-    assert ours_hazy[0] == "Ours" and all(c.startswith(r"\first{") for c in ours_hazy[2:])
+    assert ours_hazy[0] == "Ours (nimbus-full: csm+plm+ggs)" and all(c.startswith(r"\first{") for c in ours_hazy[2:])
     assert cells[1][2] == r"\second{21.00}"
     assert cells[2][0] == "w/o CSM" and cells[2][2:] == ["--"] * 3
     assert r"\multirow{4}{*}{Hazy (H)}" in tex and tex.count(r"\cmidrule(lr){1-5}") == 2
@@ -227,7 +258,7 @@ def test_presets_are_not_mixed(tmp_path):
     keys = [t.key for t in tables]
     assert "ablation_components_tiny" in keys and "ablation_components_fast" in keys
     fast = next(t for t in tables if t.key == "ablation_components_fast")
-    assert fast.row("Ours", 0).values[("Average", "psnr")] == pytest.approx(22.0) and "preset fast" in fast.title
+    assert fast.row(OURS_LABEL, 0).values[("Average", "psnr")] == pytest.approx(22.0) and "preset fast" in fast.title
     assert "ablation_ggs_fast" not in keys  # no GGS-factor row was run with the fast preset
 
 

@@ -1,17 +1,18 @@
 """The synthesizer's whole configuration and its protocol presets (``--set``: :mod:`nimbus.config_set`).
 
-Protocols (:func:`protocol_config`):
+Protocols (:func:`protocol_config`; :data:`PROTOCOL_SUMMARIES` says each in one line):
 
 ``onerestore`` (default)
     Reproduces the NimbusGS paper's data: OneRestore haze on normalised depth
     with beta and airlight drawn per view, order rain -> snow -> haze, display
-    values, particles without depth.
+    values, particles without depth.  Drawn per view, the haze is not one medium
+    the views share: two views of a point see it through different haze.
 ``physical``
-    One homogeneous medium for the scene (``t = exp(-beta r)``, beta from
-    ``--beta`` / ``--visibility`` or a visibility of 5 depth scales), particles
-    with depth (size ~ 1/z, hidden behind surfaces, attenuated over their own
-    distance), compositing in linear light.  ``--haze-mode heterogeneous``
-    swaps in the world-space height fog.
+    One homogeneous medium for the scene, the same for every view (view-consistent
+    haze): ``t = exp(-beta r)`` with beta from ``--beta`` / ``--visibility`` or a
+    visibility of 5 depth scales; particles with depth (size ~ 1/z, hidden behind
+    surfaces, attenuated over their own distance), compositing in linear light.
+    ``--haze-mode heterogeneous`` swaps in the world-space height fog.
 """
 
 from __future__ import annotations
@@ -31,6 +32,13 @@ from weather_synth.rain import RainConfig
 from weather_synth.snow import SnowConfig
 
 PROTOCOLS = ("onerestore", "physical")
+#: What each protocol draws per view and per scene, in one line (``--help``, the benchmark's tables).
+PROTOCOL_SUMMARIES = {
+    "onerestore": "the paper's data: haze beta and airlight drawn per view on normalised depth (not one medium "
+                  "across views), particles per view",
+    "physical": "one medium per scene (one beta and airlight, t = exp(-beta * distance): view-consistent haze), "
+                "depth-aware particles, linear light",
+}
 
 
 @dataclass(frozen=True)

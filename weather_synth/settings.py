@@ -16,6 +16,14 @@ A comma-separated list of settings; each setting is components joined by ``+``.
 Components are case-insensitive and accept long names: ``h``/``haze``/``fog``,
 ``r``/``rain``, ``s``/``snow``.  ``all`` expands to the seven settings.  So
 ``"H,R,haze+rain"`` and ``"h, r, H+R"`` name the same three settings.
+
+Protocol families (:func:`parse_family_weather`, the benchmark's ``--weathers``)
+------------------------------------------------------------------------------
+The same setting synthesised under another protocol (:mod:`weather_synth.config`) is
+another benchmark setting: ``SETTING@PROTOCOL`` names it (``H@physical``,
+``all@physical`` for the seven).  A setting without ``@`` is in the default family
+(``onerestore``, the paper's data) and keeps its plain name, so ``H`` and
+``H@onerestore`` are one setting, named ``H``.
 """
 
 from __future__ import annotations
@@ -116,3 +124,89 @@ def parse_weather(spec: str) -> tuple[WeatherSetting, ...]:
             found = [parse_setting(item)]
         out += [s for s in found if s not in out]
     return tuple(out)
+
+
+#: Joins a setting to its protocol family in a benchmark token (``H+R@physical``).
+FAMILY_SEPARATOR = "@"
+#: The protocol of a setting named without ``@`` (the paper's data).
+DEFAULT_PROTOCOL = "onerestore"
+
+
+@dataclass(frozen=True)
+class FamilySetting:
+    """A weather setting in a synthesis-protocol family (module docstring).
+
+    Attributes
+    ----------
+    setting : WeatherSetting
+    protocol : str
+        :data:`weather_synth.config.PROTOCOLS` name.
+    """
+
+    setting: WeatherSetting
+    protocol: str = DEFAULT_PROTOCOL
+
+    @property
+    def name(self) -> str:
+        """``H+R`` in the default family, ``H+R@physical`` in another."""
+        if self.protocol == DEFAULT_PROTOCOL:
+            return self.setting.name
+        return f"{self.setting.name}{FAMILY_SEPARATOR}{self.protocol}"
+
+    @property
+    def description(self) -> str:
+        """``haze + rain`` in the default family, ``haze + rain, physical protocol`` in another."""
+        if self.protocol == DEFAULT_PROTOCOL:
+            return self.setting.description
+        return f"{self.setting.description}, {self.protocol} protocol"
+
+    def __str__(self) -> str:
+        return self.name
+
+
+def _protocol(text: str, token: str) -> str:
+    from weather_synth.config import PROTOCOLS  # the synthesizer's config: loaded only for a family token
+
+    protocol = text.strip().lower()
+    if protocol not in PROTOCOLS:
+        raise NimbusError(f"unknown protocol {text!r} in {token!r}; write SETTING@PROTOCOL with a protocol among "
+                          f"{', '.join(PROTOCOLS)} (e.g. H+R@physical, all@physical)")
+    return protocol
+
+
+def parse_family_setting(text: str) -> FamilySetting:
+    """Parse one ``SETTING[@PROTOCOL]`` such as ``"H+R"`` or ``"haze@physical"``."""
+    setting, sep, protocol = text.partition(FAMILY_SEPARATOR)
+    return FamilySetting(parse_setting(setting), _protocol(protocol, text) if sep else DEFAULT_PROTOCOL)
+
+
+def parse_family_weather(spec: str) -> tuple[FamilySetting, ...]:
+    """Parse a benchmark ``--weathers`` value: :func:`parse_weather`'s grammar, each item optionally ``@PROTOCOL``.
+
+    ``all@physical`` is the seven settings in the physical family.  Duplicates are dropped,
+    first order kept.
+
+    Raises
+    ------
+    NimbusError
+        On an unknown or empty token or protocol.
+    """
+    if not isinstance(spec, str) or not spec.strip():
+        raise NimbusError(f"no weather given; {_valid_tokens_message()}")
+    out: list[FamilySetting] = []
+    for item in spec.split(","):
+        setting, sep, protocol = item.strip().partition(FAMILY_SEPARATOR)
+        family = _protocol(protocol, item.strip()) if sep else DEFAULT_PROTOCOL
+        found = [FamilySetting(s, family) for s in parse_weather(setting)] if setting.strip() else []
+        if not found:
+            raise NimbusError(f"empty weather setting in {item.strip()!r}; {_valid_tokens_message()}")
+        out += [s for s in found if s not in out]
+    return tuple(out)
+
+
+def family_order() -> tuple[str, ...]:
+    """Every setting name of every family, in table order: the default family's seven, then each other's."""
+    from weather_synth.config import PROTOCOLS
+
+    others = [p for p in PROTOCOLS if p != DEFAULT_PROTOCOL]
+    return ALL_SETTING_NAMES + tuple(FamilySetting(s, p).name for p in others for s in ALL_SETTINGS)

@@ -1,8 +1,8 @@
 """Run the benchmark grid (``nimbus-bench run``): synthesise, train, render and score every cell.
 
 With no arguments this is the default benchmark: every built-in scene (garden, street,
-tabletop) at the tiny size, all seven weather settings, NimbusGS (when registered) and
-3DGS with the tiny preset, seed 0, into ``bench_runs/``.  Rerunning skips finished cells
+tabletop) at the tiny size, all seven weather settings (onerestore protocol), NimbusGS, 3DGS and
+restore-3dgs (those registered) with the tiny preset, seed 0, into ``bench_runs/``.  Rerunning skips finished cells
 (see :mod:`benchmark.grid`).
 
 Two runs may share a root: each leaves the cells the other is running to it and lists them
@@ -28,9 +28,12 @@ DEFAULT_ROOT = "bench_runs"
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenes", default=None, help="comma list of built-in scenes (default: all of them)")
-    p.add_argument("--weathers", default="all", help="comma list of settings (H, R, S, H+R, ...) or all")
+    p.add_argument("--weathers", default="all",
+                   help="comma list of settings (H, R, S, H+R, ...) or all, in the default (onerestore: beta and "
+                        "airlight drawn per view) protocol; SETTING@physical (e.g. H@physical, all@physical) for "
+                        "the physical protocol's family (one medium per scene), tabled apart")
     p.add_argument("--methods", default="default",
-                   help="comma list of registered methods; default: nimbus and 3dgs (those registered)")
+                   help="comma list of registered methods; default: nimbus, 3dgs and restore-3dgs (those registered)")
     p.add_argument("--preset", default=DEFAULT_PRESET, help="trainer preset(s), comma list: tiny, fast, paper")
     p.add_argument("--seeds", default="0", help="comma list of training seeds")
     p.add_argument("--size", default=DEFAULT_SIZE, help="built-in scene size: tiny, small, standard")
@@ -54,10 +57,10 @@ def run(args: argparse.Namespace) -> int:
     from benchmark.tables.summary import summary_table
     from nimbus.data.builtin import list_scenes
     from nimbus.config_set import parse_set_args
-    from weather_synth.settings import parse_weather
+    from weather_synth.settings import parse_family_weather
 
     scenes = split_names(args.scenes, "--scenes") if args.scenes else list_scenes()
-    weathers = [w.name for w in parse_weather(args.weathers)]
+    weathers = [w.name for w in parse_family_weather(args.weathers)]
     methods, skipped = resolve_methods(args.methods)
     if skipped:
         print(f"note: method(s) {', '.join(skipped)} not registered (yet); skipped", file=sys.stderr)

@@ -12,8 +12,10 @@ file stem                   paper table                 rows x columns
 ==========================  ==========================  ===============================================
 
 Which of our methods fills which paper row is the data in :data:`ABLATIONS` (method
-names from :mod:`nimbus.methods.registry`); the paper's "Ours" is ``nimbus-full``,
-the configuration every ablation variant changes one thing of.  Values are means over
+names from :mod:`nimbus.methods.registry`); the paper's "Ours" is ``nimbus-full``
+(:data:`~benchmark.tables.results.ABLATION_OURS`), the configuration every ablation variant
+changes one thing of, and our row says so (``Ours (nimbus-full: csm+plm+ggs)``; the per-weather
+tables' "Ours" is ``nimbus``, components by ``auto``).  Values are means over
 the seeds of a cell; an ``Average`` is the mean over the scenes the block's rows were
 run on, and is left empty (never zero) for a row that misses one of them.  A table is
 written when the store has at least one of its variant rows (``Ours``, shared by the
@@ -31,13 +33,14 @@ from typing import TYPE_CHECKING, Iterator, Sequence
 
 from benchmark.data import PAPER_ABLATIONS_DIR, read_csv
 from benchmark.tables.model import AVERAGE, Block, LongFormat, Row, Table
-from benchmark.tables.results import METRIC_COLUMNS, METRICS, average, finished, ordered, protocols, scene_means
+from benchmark.tables.results import (ABLATION_OURS, METRIC_COLUMNS, METRICS, average, finished, ordered, protocols,
+                                      scene_means)
 
 if TYPE_CHECKING:  # importlib.resources.abc is Python 3.11+
     from importlib.resources.abc import Traversable
 
 #: Our configuration behind the paper's "Ours" row of the ablations (every component forced on).
-OURS = "nimbus-full"
+OURS = ABLATION_OURS.method
 CSV = LongFormat("ablations.csv", "ablation tables, long format",
                  ("table", "paper_label", "preset", "block", "weather", "variant", "method", "scene", *METRICS,
                   *(f"{k}_mark" for k in METRICS), "runs", "ssim_protocol", "lpips_net"))
@@ -185,7 +188,7 @@ def _ablation_table(spec: AblationSpec, frame, key: str, title: str, preset: str
         for ar in block.rows:
             have = [s for s in scenes[bi] if (ar.method, s) in cells]
             found |= bool(have) and ar.method != OURS  # "Ours" alone is no ablation
-            row = Row(ar.label, rule_before=ar.rule_before,
+            row = Row(ABLATION_OURS.label if ar.method == OURS else ar.label, rule_before=ar.rule_before,
                       fields={"variant": ar.label, "method": ar.method,
                               "runs": sum(cells[(ar.method, s)][1] for s in have)})
             for s in have:
@@ -205,7 +208,7 @@ def _ablation_table(spec: AblationSpec, frame, key: str, title: str, preset: str
     average_over = "; ".join(f"{b.name or b.weather}: {', '.join(scenes[bi]) or 'none run'}"
                              for bi, b in enumerate(spec.blocks))
     what = "Average = mean over the scenes" if spec.columns == "average" else "column groups = scenes"
-    ours = f"; 'Ours' is {OURS} (every component on)" if OURS in spec.methods else ""
+    ours = f"; {ABLATION_OURS.note()}" if OURS in spec.methods else ""
     extra = [r.label for b in spec.blocks for r in b.rows if not r.in_paper]
     extra = f"; rows not in the paper's table: {', '.join(extra)}" if extra else ""
     notes.insert(0, f"SSIM protocol: {ssim_protocol}; LPIPS: {lp}; mean over seeds; {what} ({average_over})"

@@ -6,6 +6,10 @@ rows, scenes as column groups plus an ``Average`` group, each group PSNR↑ / SS
 Values are means over the seeds of a cell; ``Average`` is the mean over scenes and is left
 empty for a method missing a scene.  Best and second best are marked per column
 (:func:`benchmark.tables.model.rank_marks`).  Every table states its SSIM protocol and LPIPS network.
+
+The "Ours" row is :data:`~benchmark.tables.results.COMPARISON_OURS` (``nimbus``, components chosen
+by ``auto``), labelled with its configuration; the ablation tables' "Ours" is ``nimbus-full``, and
+each table's note says both.
 """
 
 from __future__ import annotations
@@ -14,47 +18,65 @@ from typing import TYPE_CHECKING, Sequence
 
 from benchmark.data import PAPER_DIR, read_csv
 from benchmark.tables.model import AVERAGE, Block, LongFormat, Row, Table
-from benchmark.tables.results import METRIC_COLUMNS, METRICS, average, finished, ordered, protocols, scene_means
+from benchmark.tables.results import (COMPARISON_OURS, METRIC_COLUMNS, METRICS, average, finished, ordered, protocols,
+                                      scene_means)
 
 if TYPE_CHECKING:  # importlib.resources.abc is Python 3.11+
     from importlib.resources.abc import Traversable
 
 CSV = LongFormat("comparisons.csv", "all method comparisons, long format",
-                 ("weather", "method", "scene", *METRICS, *(f"{k}_mark" for k in METRICS), "seeds", "ssim_protocol",
-                  "lpips_net"))
+                 ("weather", "protocol", "method", "scene", *METRICS, *(f"{k}_mark" for k in METRICS), "seeds",
+                  "ssim_protocol", "lpips_net"))
 CAPTION_LEAD = "Quantitative comparison: "
 
 
 def weather_caption(weather: str) -> str:
-    """``haze (H)``: a weather setting's description and name."""
-    from weather_synth.settings import parse_setting
+    """``haze (H)``: a weather setting's description and name; ``haze (H), physical protocol: one medium per
+    scene (...)`` for a setting of another protocol's family (``H@physical``)."""
+    from weather_synth.config import PROTOCOL_SUMMARIES
+    from weather_synth.settings import DEFAULT_PROTOCOL, parse_family_setting
 
-    return f"{parse_setting(weather).description} ({weather})"
+    family = parse_family_setting(weather)
+    caption = f"{family.setting.description} ({family.setting.name})"
+    if family.protocol != DEFAULT_PROTOCOL:
+        caption += f", {family.protocol} protocol: {PROTOCOL_SUMMARIES[family.protocol]}"
+    return caption
+
+
+def table_key(weather: str) -> str:
+    """File stem of a setting's table: ``weather_H+R``, ``weather_H+R_physical`` in the physical family."""
+    from weather_synth.settings import FAMILY_SEPARATOR
+
+    return "weather_" + weather.replace(FAMILY_SEPARATOR, "_")
 
 
 def _table(weather: str, key: str, label: str, scenes: list[str], rows: list[Row], **kw) -> Table:
+    tag = table_key(weather)[len("weather_"):].replace("+", "-").replace("_", "-")
     return Table(key, weather, columns=METRIC_COLUMNS, groups=[*scenes, AVERAGE], blocks=[Block(rows)],
-                 label=f"tab:nimbus-bench-{label}{weather.replace('+', '-')}", caption_lead=CAPTION_LEAD, wide=True,
-                 **kw)
+                 label=f"tab:nimbus-bench-{label}{tag}", caption_lead=CAPTION_LEAD, wide=True, **kw)
 
 
 def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]]:
     """One table per weather setting of the store's finished cells (no layout is ever skipped).
 
-    Methods in ``method_order`` are listed first, in that order; the others follow in store order.
+    A setting of another synthesis protocol's family (``H@physical``) is a setting of its own:
+    its table follows the default family's seven.  Methods in ``method_order`` are listed
+    first, in that order; the others follow in store order.
     """
-    from weather_synth.settings import ALL_SETTING_NAMES
+    from weather_synth.config import PROTOCOL_SUMMARIES
+    from weather_synth.settings import family_order, parse_family_setting
 
     ok = finished(df)
     ssim_protocol, lp = protocols(ok)
     out = []
-    for weather in ordered(ok["weather"], ALL_SETTING_NAMES):
+    for weather in ordered(ok["weather"], family_order()):
         sub = ok[ok["weather"] == weather]
         scenes = ordered(sub["scene_label"])
         cells = scene_means(sub, "method_label")
         rows = []
         for m in ordered(sub["method_label"], method_order):
-            row = Row(m, fields={"method": m})
+            ours = sub.loc[sub["method_label"] == m, "method"].iloc[0] == COMPARISON_OURS.method
+            row = Row(COMPARISON_OURS.row_label(m) if ours else m, fields={"method": m})
             for s in scenes:
                 if (m, s) in cells:
                     means, n = cells[(m, s)]
@@ -64,11 +86,14 @@ def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]
                 row.values[(AVERAGE, k)] = average([row.values.get((s, k)) for s in scenes])
             rows.append(row)
         caption = weather_caption(weather)
-        out.append(_table(weather, f"weather_{weather}", "", scenes, rows, title=caption,
-                          notes=[f"SSIM protocol: {ssim_protocol}; LPIPS: {lp}; mean over seeds, Average = mean "
-                                 "over scenes"],
+        protocol = parse_family_setting(weather).protocol
+        out.append(_table(weather, table_key(weather), "", scenes, rows, title=caption,
+                          notes=[f"Synthesis protocol: {protocol} ({PROTOCOL_SUMMARIES[protocol]}); SSIM protocol: "
+                                 f"{ssim_protocol}; LPIPS: {lp}; mean over seeds, Average = mean over scenes; "
+                                 f"{COMPARISON_OURS.note()}"],
                           what=f"ours: method comparison, {caption}", csv=CSV,
-                          fields={"weather": weather, "ssim_protocol": ssim_protocol, "lpips_net": lp}))
+                          fields={"weather": weather, "protocol": protocol, "ssim_protocol": ssim_protocol,
+                                  "lpips_net": lp}))
     return out, []
 
 

@@ -5,6 +5,7 @@ The quality columns (PSNR, SSIM, LPIPS) are defined here once for every layout t
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Iterable, Sequence
 
 import numpy as np
@@ -19,6 +20,48 @@ METRIC_COLUMNS = (
     Column("lpips", "LPIPS↓", r"LPIPS$\downarrow$", 3, higher_is_better=False),
 )
 METRICS = tuple(c.key for c in METRIC_COLUMNS)
+
+
+@dataclass(frozen=True)
+class Ours:
+    """The method a table's "Ours" row shows, named with its configuration in the row label.
+
+    The per-weather tables compare the method a user runs (``nimbus``, components chosen by
+    ``auto``); the ablations change one thing of every component forced on (``nimbus-full``).
+    Each table's label says which, so the two are never read as one configuration.
+
+    Attributes
+    ----------
+    method : str
+        Registered method (:mod:`nimbus.methods.registry`) whose results fill the row.
+    configuration : str
+        Its configuration in a few words (``components by auto``, ``csm+plm+ggs``).
+    """
+
+    method: str
+    configuration: str
+
+    @property
+    def label(self) -> str:
+        """``Ours (nimbus: components by auto)``."""
+        return f"Ours ({self.method}: {self.configuration})"
+
+    def row_label(self, method_label: str) -> str:
+        """The label of the row whose store label is ``method_label`` (:func:`labelled`: maybe `` (preset)``)."""
+        return self.label + method_label[len(self.method):]
+
+    def note(self) -> str:
+        """What a table says under it about its "Ours" row, and the other layout's."""
+        other, where = ((ABLATION_OURS, "ablation") if self == COMPARISON_OURS else
+                        (COMPARISON_OURS, "per-weather comparison"))
+        return (f"Ours = {self.method} ({self.configuration}); the {where} tables' Ours is {other.method} "
+                f"({other.configuration})")
+
+
+#: The per-weather comparisons' "Ours": NimbusGS as a user runs it.
+COMPARISON_OURS = Ours("nimbus", "components by auto")
+#: The ablations' "Ours": every component forced on, the base each ablation variant changes one thing of.
+ABLATION_OURS = Ours("nimbus-full", "csm+plm+ggs")
 
 
 def finished(df):

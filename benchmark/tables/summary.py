@@ -13,13 +13,15 @@ def summary_table(df, method_order: Sequence[str] = ()) -> str:
 
     Error cells are counted, not averaged.
     """
-    from weather_synth.settings import ALL_SETTING_NAMES
+    from weather_synth.settings import family_order
 
     if df is None or len(df) == 0:
         return "(no results)"
-    lines = [f"{'weather':<7} {'method':<16} {'cells':>5} {'PSNR':>7} {'SSIM':>6} {'LPIPS':>6} {'train s':>8} "
+    # A setting of another protocol's family is named H+R+S@physical: the column widens to it.
+    ww = max(7, *(len(str(w)) for w in df["weather"]))
+    lines = [f"{'weather':<{ww}} {'method':<16} {'cells':>5} {'PSNR':>7} {'SSIM':>6} {'LPIPS':>6} {'train s':>8} "
              f"{'errors':>6}"]
-    for w in ordered(df["weather"], ALL_SETTING_NAMES):
+    for w in ordered(df["weather"], family_order()):
         sub = df[df["weather"] == w]
         for m in ordered(sub["method"], method_order):
             g = sub[sub["method"] == m]
@@ -29,7 +31,7 @@ def summary_table(df, method_order: Sequence[str] = ()) -> str:
                 v = ok[col].astype(float)
                 return "n/a" if len(v) == 0 or v.isna().any() else format(v.mean(), spec)
 
-            lines.append(f"{w:<7} {m:<16} {len(g):>5} {mean('psnr', '7.2f'):>7} {mean('ssim', '6.3f'):>6} "
+            lines.append(f"{w:<{ww}} {m:<16} {len(g):>5} {mean('psnr', '7.2f'):>7} {mean('ssim', '6.3f'):>6} "
                          f"{mean('lpips', '6.3f'):>6} {mean('train_time_s', '8.1f'):>8} {len(g) - len(ok):>6}")
     ok = df[df["status"] == "ok"]
     if len(ok):

@@ -306,7 +306,9 @@ class NimbusGS(GaussianSplatting):
         c = self.cfg
         if len(self.params) == 0:
             return []
-        need_renders = self.use_plm is None or (self.use_plm and c.residual_source == "render")
+        # The restored source needs the renders too: its residual goes through the same particle
+        # mask (view-consistency against the rendered surfaces) as the render source's.
+        need_renders = self.use_plm is None or self.use_plm
         composites = excesses = None
         render_time = 0.0
         if need_renders:
@@ -327,11 +329,11 @@ class NimbusGS(GaussianSplatting):
         if self.use_plm:
             layer = self.particulate = ParticulateLayer(c, self.train_images, self.train_masks, self.device)
             for vi, img in enumerate(self.train_images):
-                if c.residual_source == "render":
-                    layer.store.set(vi, layer.residual(vi, composites[vi], excesses[vi]), step)
-                else:
-                    layer.store.set(vi, layer.against(vi, classical_restore(img, RestoreConfig(patch=c.dcp_patch))),
-                                    step)
+                # Only the reference differs between the sources (one change for the ablation):
+                # the outlier / consistency mask and the top-hat cap apply to both.
+                reference = (composites[vi] if c.residual_source == "render"
+                             else classical_restore(img, RestoreConfig(patch=c.dcp_patch)))
+                layer.store.set(vi, layer.residual(vi, reference, excesses[vi]), step)
             layer.store.refreshes += 1
         return [("components", self.components_record())]
 

@@ -170,7 +170,8 @@ class NimbusConfig(TrainConfig):
     -----------------------
     residual_source : str
         ``render`` (paper: R = ReLU(I_in - I_con)) or ``restored`` (R = ReLU(I_in - I_restore)
-        from a classical 2D restoration, computed once: the "restored-derived residuals" variant).
+        from a classical 2D restoration, computed once: the "restored-derived residuals" variant;
+        the same particle mask and top-hat cap as ``render``, so only the reference differs).
     residual_outlier_sigmas : float
         0 (paper): R = ReLU(I_in - I_con) everywhere.  k > 0 (ours, default 3): R only where the
         high-passed residual exceeds k robust standard deviations (grown by 1 px), so

@@ -234,7 +234,8 @@ class ParticulateLayer:
         self._tophat: dict[int, Tensor] = {}
 
     def residual(self, vi: int, composite: Tensor, excess: Tensor | None = None) -> Tensor:
-        """R of view ``vi`` against ``composite`` (I_con), capped by the view's top-hat."""
+        """R of view ``vi`` against ``composite`` (I_con, or a classical restoration for
+        ``residual_source=restored``), masked as a particle layer and capped by the view's top-hat."""
         c = self.cfg
         image = self.images[vi]
         bound = None
@@ -245,7 +246,3 @@ class ParticulateLayer:
             bound = self._tophat[vi].float() / 255
         return masked(extract_residual(image, composite, c.residual_outlier_sigmas, excess, bound,
                                        c.residual_outlier_scope), self.masks[vi])
-
-    def against(self, vi: int, reference: Tensor) -> Tensor:
-        """R of view ``vi`` against another ``reference`` (a classical restoration), uncapped."""
-        return masked(extract_residual(self.images[vi], reference), self.masks[vi])

@@ -8,7 +8,7 @@ from dataclasses import replace
 from nimbus.cli_util import MAX_SEED, seed_arg
 from nimbus.config_set import apply_overrides, parse_set_args
 from nimbus.errors import NimbusError
-from weather_synth.config import PROTOCOLS, SynthConfig, protocol_config
+from weather_synth.config import PROTOCOL_SUMMARIES, PROTOCOLS, SynthConfig, protocol_config
 from weather_synth.compose import COMPOSITION_ORDERS
 from weather_synth.haze import HAZE_MODES
 from weather_synth.rain import RAIN_PRESETS, rain_preset
@@ -26,8 +26,7 @@ def add_synth_arguments(parser: argparse.ArgumentParser) -> None:
                    help=f"settings, comma-separated: H|haze, R|rain, S|snow joined by '+', or 'all' "
                         f"({','.join(ALL_SETTING_NAMES)}); case-insensitive")
     g.add_argument("--protocol", choices=PROTOCOLS, default="onerestore",
-                   help="onerestore: the paper's data (OneRestore haze on normalised depth, per-view beta/A, "
-                        "rain -> snow -> haze); physical: one medium per scene, depth-aware particles, linear light")
+                   help="; ".join(f"{name}: {what}" for name, what in PROTOCOL_SUMMARIES.items()))
     g.add_argument("--seed", type=seed_arg, default=0, help=f"scene seed in [0, {MAX_SEED}]: same seed, same bytes")
     g.add_argument("--depth", default="auto", metavar="SOURCE",
                    help="depth for haze and depth-aware particles: scene (the views' depth maps), recon (a quick "
