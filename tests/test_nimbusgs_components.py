@@ -15,9 +15,9 @@ from nimbus.nimbusgs.auto import haze_evidence, particle_evidence, residual_tail
 from nimbus.nimbusgs.config import NimbusConfig, paper_m_init, parse_components, preset
 from nimbus.nimbusgs.ggs import GGSFactors, ggs_weights, robust_normalise, sample_error, scale_gradients
 from nimbus.nimbusgs.losses import dcp_loss, soft_dark_channel
-from nimbus.nimbusgs.particulate import (ResidualStore, ViewGeometry, consistency_excess, extract_residual,
-                                         is_refresh_step, neighbours, particle_mask, tophat_window,
-                                         white_tophat)
+from nimbus.nimbusgs.particulate import (ResidualStore, ViewConsistency, ViewGeometry, consistency_excess,
+                                         extract_residual, is_refresh_step, neighbours, particle_mask,
+                                         tophat_window, white_tophat)
 from nimbus.restore.classical import classical_restore
 from nimbus.nimbusgs.scattering import (Box, ExtinctionGrid, UniformExtinction, camera_rays, density_scale_for,
                                         gaussian_extinction_map, march, march_interval, ray_box_interval,
@@ -178,6 +178,24 @@ def test_surface_in_box_marks_rays_that_end_at_a_surface_inside():
 
 
 # --- airlight -----------------------------------------------------------------------------
+def test_network_airlight_gradients_are_nn_linear_ones_to_rounding():
+    torch.manual_seed(0)
+    net = NetworkAirlight(16)
+    torch.nn.init.normal_(net.mlp[-1].weight, std=0.3)
+    dirs = torch.nn.functional.normalize(torch.randn(500, 3), dim=1)
+    t, desc, target = torch.rand(500), torch.rand(6), torch.rand(500, 3)
+    a = net(dirs, t, desc)
+    (a - target).square().mean().backward()
+    ours = [p.grad.clone() for p in net.parameters()]
+    net.zero_grad()
+    x = torch.cat([dirs, t[:, None], desc.expand(500, 6)], dim=1)
+    plain = torch.sigmoid(torch.logit(desc[:3].clamp(0.02, 0.98)) + net.mlp(x))
+    (plain - target).square().mean().backward()
+    torch.testing.assert_close(a, plain, rtol=1e-6, atol=1e-7)
+    for g, p in zip(ours, net.parameters()):
+        torch.testing.assert_close(g, p.grad, rtol=1e-5, atol=1e-8)
+
+
 def test_airlight_variants_start_at_the_dark_channel_estimate():
     img = torch.zeros(20, 30, 3)
     img[:5, :8] = torch.tensor([0.8, 0.85, 0.9])  # the haziest (brightest dark channel) region
@@ -242,6 +260,18 @@ def test_view_consistency_separates_particles_from_surface_detail():
     assert float(r[8, 20].min()) > 0.5 and float(r[v, u].max()) == 0.0
     unknown = [ViewGeometry(g.camera, g.depth, torch.zeros_like(g.valid)) for g in geometry]
     assert torch.isnan(consistency_excess(0, images, unknown, others[0])).all()  # no surface: no verdict
+
+
+def test_kept_consistency_check_is_the_same_as_the_one_off_function():
+    cams, images, geometry = _plane_views()
+    check = ViewConsistency(cams, images, 3)
+    assert check.others == neighbours(cams, 3)
+    for moved in (geometry, [ViewGeometry(g.camera, g.depth * 1.01, g.valid) for g in geometry]):  # a later refresh
+        for i in range(len(cams)):
+            once = consistency_excess(i, images, moved, check.others[i])
+            kept = check.excess(i, moved)
+            assert torch.equal(torch.isnan(once), torch.isnan(kept))
+            assert torch.equal(once.nan_to_num(), kept.nan_to_num())  # bit for bit
 
 
 def test_faint_inconsistent_particle_enters_r_only_when_consistency_decides():

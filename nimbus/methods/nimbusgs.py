@@ -50,8 +50,8 @@ from nimbus.nimbusgs.airlight import view_descriptor
 from nimbus.nimbusgs.auto import ParticleEvidence, haze_evidence, particle_evidence, residual_tail_counts
 from nimbus.nimbusgs.config import NimbusConfig
 from nimbus.nimbusgs.degradation import (DEHAZE_MIN_TRANSMISSION, INIT_TRANSMISSION_RANGE, Medium,
-                                         ParticulateLayer, compose, estimate_march_time, valid_image,
-                                         view_excesses)
+                                         ParticulateLayer, compose, consistency_check, estimate_march_time,
+                                         valid_image, view_excesses)
 from nimbus.nimbusgs.ggs import GGSFactors, ggs_weights, scale_gradients
 from nimbus.nimbusgs.losses import dcp_loss, stage_loss
 from nimbus.nimbusgs.particulate import ViewGeometry, is_refresh_step
@@ -81,6 +81,8 @@ class NimbusGS(GaussianSplatting):
         self.counts: dict[str, int] = defaultdict(int)
         self._pending: list[tuple[str, dict]] = []
         self._rays: dict[int, ViewRays] = {}
+        #: The residual's consistency check (built at its first use: only runs with PLM refresh it).
+        self._consistency = None
         self.medium: Medium | None = None
         self.particulate: ParticulateLayer | None = None
         self.ggs = GGSFactors(c.ggs_depth, c.ggs_radius, c.ggs_error, c.ggs_r0, tuple(c.ggs_clip))
@@ -291,13 +293,18 @@ class NimbusGS(GaussianSplatting):
             geometry.append(ViewGeometry(view.camera, render["depth"] / alpha.clamp_min(1e-6), valid))
         return cons, geometry
 
+    def _consistency_check(self):
+        if self._consistency is None:
+            self._consistency = consistency_check(self.cfg, [v.camera for v in self.train_views], self.train_images)
+        return self._consistency
+
     def _refresh_all(self, step: int) -> None:
         if len(self.params) == 0:
             return  # the runner stops with its own message
         t0 = time.perf_counter()
         cons, geometry = self._composites(step)
         layer = self.particulate
-        for vi, (con, excess) in enumerate(zip(cons, view_excesses(self.cfg, self.train_images, geometry))):
+        for vi, (con, excess) in enumerate(zip(cons, view_excesses(self._consistency_check(), geometry))):
             layer.store.set(vi, layer.residual(vi, con, excess), step)
         layer.store.refreshes += 1
         self.timing["plm_refresh_s"] += time.perf_counter() - t0
@@ -315,7 +322,7 @@ class NimbusGS(GaussianSplatting):
             t0 = time.perf_counter()
             composites, geometry = self._composites(step)
             render_time = (time.perf_counter() - t0) / len(composites)
-            excesses = view_excesses(c, self.train_images, geometry)
+            excesses = view_excesses(self._consistency_check(), geometry)
             self.timing["evidence_s" if self.use_plm is None else "plm_refresh_s"] += time.perf_counter() - t0
         if self.use_plm is None:
             counts = [residual_tail_counts(valid_image(self.train_images[vi], self.train_masks[vi], con), con, ex)

@@ -23,8 +23,8 @@ from torch import Tensor
 from nimbus.data import Camera
 from nimbus.nimbusgs.airlight import make_airlight
 from nimbus.nimbusgs.config import NimbusConfig
-from nimbus.nimbusgs.particulate import (ResidualStore, ViewGeometry, consistency_excess, extract_residual,
-                                         neighbours, tophat_window, white_tophat)
+from nimbus.nimbusgs.particulate import (ResidualStore, ViewConsistency, ViewGeometry, extract_residual,
+                                         tophat_window, white_tophat)
 from nimbus.nimbusgs.scattering import (Box, ExtinctionGrid, UniformExtinction, ViewRays, camera_rays,
                                         density_scale_for, gaussian_extinction_map, march, march_interval,
                                         ray_box_interval, surface_in_box)
@@ -204,12 +204,18 @@ def valid_image(image: Tensor, mask: Tensor | None, composite: Tensor) -> Tensor
     return image if mask is None else torch.where(mask[..., None], image, composite.to(image.dtype))
 
 
-def view_excesses(config: NimbusConfig, images: list[Tensor], geometry: list[ViewGeometry]) -> list[Tensor | None]:
-    """Per view, the view-inconsistent excess over its neighbours (None when the check is off)."""
+def consistency_check(config: NimbusConfig, cameras: list[Camera], images: list[Tensor]) -> ViewConsistency | None:
+    """The training views' consistency check (:class:`ViewConsistency`), or None when it is off."""
     if config.consistency_neighbours < 1 or config.residual_outlier_sigmas <= 0:
+        return None
+    return ViewConsistency(cameras, images, config.consistency_neighbours)
+
+
+def view_excesses(check: ViewConsistency | None, geometry: list[ViewGeometry]) -> list[Tensor | None]:
+    """Per view, the view-inconsistent excess over its neighbours (None when the check is off)."""
+    if check is None:
         return [None] * len(geometry)
-    others = neighbours([g.camera for g in geometry], config.consistency_neighbours)
-    return [consistency_excess(i, images, geometry, others[i]) for i in range(len(geometry))]
+    return [check.excess(i, geometry) for i in range(len(geometry))]
 
 
 class ParticulateLayer:

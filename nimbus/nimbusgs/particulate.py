@@ -123,9 +123,9 @@ def neighbours(cameras: list[Camera], count: int) -> list[list[int]]:
     return out
 
 
-def _project(points: Tensor, camera: Camera) -> tuple[Tensor, Tensor]:
-    R = torch.as_tensor(np.array(camera.R), dtype=points.dtype, device=points.device)
-    t = torch.as_tensor(np.array(camera.t), dtype=points.dtype, device=points.device)
+def _project(points: Tensor, camera: Camera, R: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
+    """Pixel positions ``[M, 2]`` and camera z ``[M]`` of world ``points`` in ``camera`` (rotation ``R``,
+    translation ``t``: its pose as tensors of the points' dtype)."""
     p = points @ R.T + t
     z = p[:, 2]
     zs = z.clamp_min(1e-9)
@@ -140,6 +140,49 @@ def _sample(image: Tensor, uv: Tensor, mode: str) -> Tensor:
                          align_corners=False).reshape(-1)
 
 
+@dataclass
+class _ViewConstants:
+    """What the consistency check needs of a view besides its rendered surface: fixed for a training run."""
+
+    rays: Tensor    # [H * W, 3] float32 camera-frame pixel rays (z = 1)
+    R: Tensor       # [3, 3] float32
+    t: Tensor       # [3] float32
+    bright: Tensor  # [H, W] intensity (mean over RGB), CONSISTENCY_WINDOW-maximum-filtered
+
+
+def _view_constants(camera: Camera, image: Tensor) -> _ViewConstants:
+    device = image.device
+    lum = image.float().mean(dim=-1)
+    pad = CONSISTENCY_WINDOW // 2
+    return _ViewConstants(
+        rays=torch.as_tensor(camera.pixel_rays(np.float64), dtype=torch.float32, device=device).reshape(-1, 3),
+        R=torch.as_tensor(np.array(camera.R), dtype=torch.float32, device=device),
+        t=torch.as_tensor(np.array(camera.t), dtype=torch.float32, device=device),
+        bright=F.max_pool2d(lum[None, None], CONSISTENCY_WINDOW, stride=1, padding=pad)[0, 0])
+
+
+def _excess(image: Tensor, g: ViewGeometry, own: _ViewConstants,
+            others: list[tuple[ViewGeometry, _ViewConstants]]) -> Tensor:
+    """:func:`consistency_excess` of the view showing ``image`` from its constants and its neighbours'."""
+    lum = image.float().mean(dim=-1)
+    h, w = lum.shape
+    p_cam = own.rays * g.depth.reshape(-1, 1).float()
+    world = (p_cam - own.t) @ own.R  # R^T (p - t), row vectors
+    samples = []
+    for gj, cj in others:
+        uv, z = _project(world, gj.camera, cj.R, cj.t)
+        wj, hj = gj.camera.width, gj.camera.height
+        ok = g.valid.reshape(-1) & (z > 1e-6) & (uv[:, 0] >= 0) & (uv[:, 0] < wj) & (uv[:, 1] >= 0) & (uv[:, 1] < hj)
+        surface = _sample(gj.depth.float(), uv, "nearest")
+        seen = _sample(gj.valid.float(), uv, "nearest") > 0
+        ok &= seen & (z <= surface * (1 + OCCLUSION_TOLERANCE))
+        samples.append(torch.where(ok, _sample(cj.bright, uv, "bilinear"), torch.full_like(z, float("nan"))))
+    if not samples:
+        return torch.full_like(lum, float("nan"))
+    med = torch.nanmedian(torch.stack(samples), dim=0).values
+    return (lum.reshape(-1) - med).reshape(h, w)
+
+
 @torch.no_grad()
 def consistency_excess(index: int, images: list[Tensor], geometry: list[ViewGeometry], others: list[int]) -> Tensor:
     """How much brighter view ``index`` is than its neighbours see the same points: ``[H, W]``, NaN where unknown.
@@ -148,34 +191,47 @@ def consistency_excess(index: int, images: list[Tensor], geometry: list[ViewGeom
     ``others`` views; a projection counts when it lands inside the image, in front of
     the camera and not behind that view's rendered surface.  The excess is the view's
     intensity (mean over RGB) minus the median, over the counted neighbours, of their
-    3 x 3-maximum-filtered intensity there.
+    3 x 3-maximum-filtered intensity there.  (:class:`ViewConsistency` computes the same for
+    every view of a training run, keeping what does not change between calls.)
     """
-    g = geometry[index]
-    cam = g.camera
-    lum = images[index].float().mean(dim=-1)
-    h, w = lum.shape
-    rays = torch.as_tensor(cam.pixel_rays(np.float64), dtype=torch.float32, device=lum.device).reshape(-1, 3)
-    p_cam = rays * g.depth.reshape(-1, 1).float()
-    R = torch.as_tensor(np.array(cam.R), dtype=torch.float32, device=lum.device)
-    t = torch.as_tensor(np.array(cam.t), dtype=torch.float32, device=lum.device)
-    world = (p_cam - t) @ R  # R^T (p - t), row vectors
-    samples = []
-    for j in others:
-        gj = geometry[j]
-        uv, z = _project(world, gj.camera)
-        wj, hj = gj.camera.width, gj.camera.height
-        ok = g.valid.reshape(-1) & (z > 1e-6) & (uv[:, 0] >= 0) & (uv[:, 0] < wj) & (uv[:, 1] >= 0) & (uv[:, 1] < hj)
-        surface = _sample(gj.depth.float(), uv, "nearest")
-        seen = _sample(gj.valid.float(), uv, "nearest") > 0
-        ok &= seen & (z <= surface * (1 + OCCLUSION_TOLERANCE))
-        lum_j = images[j].float().mean(dim=-1)
-        pad = CONSISTENCY_WINDOW // 2
-        bright = F.max_pool2d(lum_j[None, None], CONSISTENCY_WINDOW, stride=1, padding=pad)[0, 0]
-        samples.append(torch.where(ok, _sample(bright, uv, "bilinear"), torch.full_like(z, float("nan"))))
-    if not samples:
-        return torch.full_like(lum, float("nan"))
-    med = torch.nanmedian(torch.stack(samples), dim=0).values
-    return (lum.reshape(-1) - med).reshape(h, w)
+    def constants(i: int) -> _ViewConstants:
+        return _view_constants(geometry[i].camera, images[i])
+
+    return _excess(images[index], geometry[index], constants(index), [(geometry[j], constants(j)) for j in others])
+
+
+class ViewConsistency:
+    """:func:`consistency_excess` of each training view against its ``count`` nearest neighbours, for the
+    repeated refreshes of one run: the neighbours, each view's pose and pixel-ray tensors and its
+    maximum-filtered intensity (from the input alone) are computed once, on first use, and kept
+    (about 16 bytes per pixel per view).
+
+    Parameters
+    ----------
+    cameras : list of Camera
+        The training views' cameras (the ``camera`` of each :class:`ViewGeometry` passed later).
+    images : list of Tensor
+        Their inputs ``[H, W, 3]``.
+    count : int
+        Neighbours per view (:func:`neighbours`).
+    """
+
+    def __init__(self, cameras: list[Camera], images: list[Tensor], count: int) -> None:
+        self.cameras = cameras
+        self.images = images
+        self.others = neighbours(cameras, count)
+        self._constants: dict[int, _ViewConstants] = {}
+
+    def _view(self, i: int) -> _ViewConstants:
+        if i not in self._constants:
+            self._constants[i] = _view_constants(self.cameras[i], self.images[i])
+        return self._constants[i]
+
+    @torch.no_grad()
+    def excess(self, index: int, geometry: list[ViewGeometry]) -> Tensor:
+        """:func:`consistency_excess` of view ``index`` with the current rendered surfaces ``geometry``."""
+        return _excess(self.images[index], geometry[index], self._view(index),
+                       [(geometry[j], self._view(j)) for j in self.others[index]])
 
 
 def particle_mask(image: Tensor, composite: Tensor, outlier_sigmas: float, excess: Tensor | None = None,
