@@ -265,9 +265,9 @@ def _ssim_from_moments(filt: Callable, x, y, clamp: Callable | None = None):
     return num / den
 
 
-@functools.lru_cache(maxsize=8)
-def _gaussian_window(device_str: str, dtype: torch.dtype) -> torch.Tensor:
-    """The 2-D window (outer product of the taps) for torch's conv2d.
+@functools.lru_cache(maxsize=1)
+def loss_taps() -> torch.Tensor:
+    """The 1-D window of the torch SSIM (training loss and torch metric): float64 ``[SSIM_WINDOW]``.
 
     The taps are computed as the training loss always computed them, ``exp(-x^2 / (2 sigma^2))``
     in torch: :func:`_gaussian_taps`' ``exp(-(x / sigma)^2 / 2)`` differs by 1 ulp in the two
@@ -276,7 +276,13 @@ def _gaussian_window(device_str: str, dtype: torch.dtype) -> torch.Tensor:
     """
     x = torch.arange(SSIM_WINDOW, dtype=torch.float64) - (SSIM_WINDOW - 1) / 2
     g = torch.exp(-(x**2) / (2 * SSIM_SIGMA**2))
-    g = g / g.sum()
+    return g / g.sum()
+
+
+@functools.lru_cache(maxsize=8)
+def _gaussian_window(device_str: str, dtype: torch.dtype) -> torch.Tensor:
+    """The 2-D window (outer product of :func:`loss_taps`) for torch's conv2d."""
+    g = loss_taps()
     return torch.outer(g, g).to(device=torch.device(device_str), dtype=dtype)
 
 
