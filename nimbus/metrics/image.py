@@ -8,7 +8,8 @@ Conventions (``shared/notes/evaluation-and-environment.md``):
 * Numpy inputs are what the benchmark scores: computed in float64 on the CPU, one value per
   image (a float for one image, a ``(B,)`` array for a batch).
 * Torch inputs are what training evaluates on its device: computed in the tensor's dtype
-  (float32 in training) with the same SSIM map as the training loss (:func:`ssim_map`), one
+  (float32 in training) with the SSIM map the training loss optimises (:func:`ssim_map`; on the
+  CPU the loss runs it in a compiled kernel, :mod:`nimbus.kernels.train_step`, equal to rounding), one
   float.  Only the ``"3dgs"`` SSIM protocol is offered there.  Both paths agree to ~1e-6 in
   SSIM and ~1e-5 dB in PSNR; their arithmetic is kept apart because each one's figures
   (results files, regression references) must not change by a bit.
