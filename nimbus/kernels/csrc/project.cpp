@@ -435,39 +435,6 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   return {gm, gq, gs, gl, gdc, grest};
 }
 
-// Below this many Gaussians binning runs on the calling thread.
-constexpr int64_t kMinSortPart = 8192;
-
-// std::stable_sort of v by less, its parts sorted in parallel and merged pairwise (std::merge
-// keeps the first run's element first among equals): a stable sort's result is unique, so
-// this is the same permutation, for any thread count.
-template <typename Less>
-void parallel_stable_sort(std::vector<int64_t>& v, const Less& less) {
-  const int64_t n = static_cast<int64_t>(v.size());
-  const int64_t parts = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), n / kMinSortPart));
-  if (parts == 1) {
-    std::stable_sort(v.begin(), v.end(), less);
-    return;
-  }
-  std::vector<int64_t> bound(parts + 1);
-  for (int64_t p = 0; p <= parts; ++p) bound[p] = n * p / parts;
-  at::parallel_for(0, parts, 1, [&](int64_t pb, int64_t pe) {
-    for (int64_t p = pb; p < pe; ++p) std::stable_sort(v.begin() + bound[p], v.begin() + bound[p + 1], less);
-  });
-  std::vector<int64_t> tmp(n);
-  for (int64_t width = 1; width < parts; width *= 2) {
-    const int64_t pairs = (parts + 2 * width - 1) / (2 * width);
-    at::parallel_for(0, pairs, 1, [&](int64_t qb, int64_t qe) {
-      for (int64_t q = qb; q < qe; ++q) {
-        const int64_t lo = bound[std::min(2 * width * q, parts)], mid = bound[std::min(2 * width * q + width, parts)],
-                      hi = bound[std::min(2 * width * q + 2 * width, parts)];
-        std::merge(v.begin() + lo, v.begin() + mid, v.begin() + mid, v.begin() + hi, tmp.begin() + lo, less);
-      }
-    });
-    v.swap(tmp);
-  }
-}
-
 // Tile-sorted intersection lists (binning.py's contract) for Gaussians with radius > 0.
 // Counting sort by tile of the Gaussians taken in depth order: O(N log N + I), no sort
 // of the I intersections.
@@ -512,36 +479,22 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians(const at::Tensor& means2d, cons
       const int32_t* r = rect.data() + 4 * i;
       if (r[2] > r[0] && r[3] > r[1]) order.push_back(i);
     }
-    parallel_stable_sort(order, [&](int64_t a, int64_t b) { return z[a] < z[b]; });
+    std::stable_sort(order.begin(), order.end(), [&](int64_t a, int64_t b) { return z[a] < z[b]; });
   });
-  // Counting and filling, each task owning a band of tile rows (so no two write one tile)
-  // and walking the whole depth order: every tile's list stays front to back.
-  const int64_t bands = static_cast<int64_t>(order.size()) < kMinSortPart
-                            ? 1
-                            : std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), ty));
-  auto for_band = [&](const auto& visit) {
-    auto run = [&](int64_t pb, int64_t pe) {
-      for (int64_t p = pb; p < pe; ++p) {
-        const int32_t y0 = static_cast<int32_t>(ty * p / bands), y1 = static_cast<int32_t>(ty * (p + 1) / bands);
-        for (int64_t i : order) {
-          const int32_t* r = rect.data() + 4 * i;
-          for (int32_t y = std::max(r[1], y0); y < std::min(r[3], y1); ++y)
-            for (int32_t x = r[0]; x < r[2]; ++x) visit(y * tx + x, i);
-        }
-      }
-    };
-    if (bands == 1) {
-      run(0, 1);
-    } else {
-      at::parallel_for(0, bands, 1, run);
-    }
-  };
-  for_band([&](int64_t t, int64_t) { ++off[t + 1]; });
+  for (int64_t i : order) {
+    const int32_t* r = rect.data() + 4 * i;
+    for (int32_t y = r[1]; y < r[3]; ++y)
+      for (int32_t x = r[0]; x < r[2]; ++x) ++off[y * tx + x + 1];
+  }
   for (int64_t t = 0; t < T; ++t) off[t + 1] += off[t];
   at::Tensor ids = at::empty({off[T]}, means2d.options().dtype(at::kLong));
   int64_t* out = ids.data_ptr<int64_t>();
   std::vector<int64_t> fill(off, off + T);
-  for_band([&](int64_t t, int64_t i) { out[fill[t]++] = i; });
+  for (int64_t i : order) {
+    const int32_t* r = rect.data() + 4 * i;
+    for (int32_t y = r[1]; y < r[3]; ++y)
+      for (int32_t x = r[0]; x < r[2]; ++x) out[fill[y * tx + x]++] = i;
+  }
   return {ids, offsets};
 }
 
