@@ -563,6 +563,25 @@ def test_cpp_binning_equals_torch_binning():
         assert empty[0].numel() == 0 and not empty[1].any()
 
 
+def test_cpp_binning_of_many_gaussians_is_the_same_on_any_thread_count():
+    """Binning a realistic count of Gaussians, with many depth ties, gives the torch lists on any thread count."""
+    raster = _needs_cpp()
+    g = torch.Generator().manual_seed(3)
+    n, w, h = 30000, 200, 150
+    means2d = torch.rand(n, 2, generator=g) * torch.tensor([w + 40.0, h + 40.0]) - 20.0
+    radii = torch.randint(0, 30, (n,), generator=g, dtype=torch.int32)
+    depths = torch.randint(1, 200, (n,), generator=g).float() / 16  # many ties, broken by index
+    ids_t, off_t = bin_gaussians(means2d, radii, depths, w, h, 16)
+    threads = torch.get_num_threads()
+    try:
+        for th in (1, 2, 3):
+            torch.set_num_threads(th)
+            ids_c, off_c = raster.bin_gaussians(means2d, radii, depths, w, h, 16)
+            assert torch.equal(ids_c, ids_t) and torch.equal(off_c, off_t), th
+    finally:
+        torch.set_num_threads(threads)
+
+
 def test_cpp_full_pipeline_matches_torch_float64_and_collects_absgrad():
     _needs_cpp()
     gs = with_edge_cases(make_gaussians(30, seed=17, dtype=torch.float64)).requires_grad_()

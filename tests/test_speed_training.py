@@ -67,3 +67,4 @@ def test_setup_kernels_builds_or_says_why(monkeypatch, capsys):
     assert run_cli(TOOL.run, ["setup-kernels"]) == 0
     out = capsys.readouterr().out
     assert "compositing kernel: " in out and "ray-march kernel: " in out and "cached in " in out
+    assert "training-step kernels (loss, gradient check): " in out

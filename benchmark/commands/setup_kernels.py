@@ -1,7 +1,8 @@
 """``nimbus-bench setup-kernels``: build (or load) the compiled CPU kernels once, so no timed run pays for it.
 
-Both libraries of :mod:`nimbus.kernels` (the rasterizer's, :mod:`nimbus.kernels.raster`, and the
-ray march's, :mod:`nimbus.kernels.march`) are built into their cache folders
+The libraries of :mod:`nimbus.kernels` (the rasterizer's, :mod:`nimbus.kernels.raster`, the
+ray march's, :mod:`nimbus.kernels.march`, and the training step's, :mod:`nimbus.kernels.train_step`)
+are built into their cache folders
 (:class:`nimbus.kernels.extension.Extension`); later processes only load them.  Optional: a
 first render or NimbusGS step builds them just the same, only inside whatever it is timing.
 """
@@ -12,7 +13,8 @@ import argparse
 import os
 import time
 
-HELP = "build and cache the compiled CPU kernels (rasterizer, ray march) now, not inside the first timed run"
+HELP = ("build and cache the compiled CPU kernels (rasterizer, ray march, training loss) now, not inside the first "
+        "timed run")
 EXAMPLE = "nimbus-bench setup-kernels"
 
 
@@ -21,7 +23,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from nimbus.kernels import march, raster
+    from nimbus.kernels import march, raster, train_step
     from nimbus.kernels.extension import disabled
 
     if disabled():
@@ -29,7 +31,7 @@ def run(args: argparse.Namespace) -> int:
               "(training uses the torch paths)")
         return 0
     failed = False
-    for extension in (raster.EXTENSION, march.EXTENSION):
+    for extension in (raster.EXTENSION, march.EXTENSION, train_step.EXTENSION):
         folder = extension.build_dir()
         cached = folder is not None and os.path.isfile(os.path.join(folder, f"{extension.name}.so"))
         t0 = time.perf_counter()

@@ -7,6 +7,8 @@
 - :mod:`~nimbus.kernels.raster`: the rasterizer's library (``composite.cpp`` +
   ``project.cpp``), used by the "cpp" backend; its instruction-set clones (``NIMBUS_CPU_ISA``).
 - :mod:`~nimbus.kernels.march`: NimbusGS's ray march through its extinction grid (``march.cpp``).
+- :mod:`~nimbus.kernels.train_step`: the training step's loss (L1 + SSIM) with its gradient, and
+  the gradients' finiteness check (``train_step.cpp``).
 
 Each library builds on first use and is independent of the others: one failing to build
 leaves the others usable, and each falls back to its torch path.

@@ -25,6 +25,7 @@ from torch import Tensor
 
 from nimbus.data import Camera, Scene, View
 from nimbus.errors import NimbusError
+from nimbus.kernels import train_step
 from nimbus.losses import photometric_loss
 from nimbus.metrics import peak_signal_noise_ratio
 from nimbus.methods.base import TrainingDiverged, default_device
@@ -196,11 +197,8 @@ class GaussianSplatting:
         return list(self.params.optimizer.param_groups)
 
     def _grads_finite(self) -> bool:
-        for group in self.param_groups():
-            for p in group["params"]:
-                if p.grad is not None and not torch.isfinite(p.grad).all():
-                    return False
-        return True
+        return train_step.all_finite([p.grad for group in self.param_groups() for p in group["params"]
+                                      if p.grad is not None])
 
     # --- state -------------------------------------------------------------------------
     def state_dict(self) -> dict:

@@ -8,7 +8,8 @@ Conventions (``shared/notes/evaluation-and-environment.md``):
 * Numpy inputs are what the benchmark scores: computed in float64 on the CPU, one value per
   image (a float for one image, a ``(B,)`` array for a batch).
 * Torch inputs are what training evaluates on its device: computed in the tensor's dtype
-  (float32 in training) with the same SSIM map as the training loss (:func:`ssim_map`), one
+  (float32 in training) with the SSIM map the training loss optimises (:func:`ssim_map`; on the
+  CPU the loss runs it in a compiled kernel, :mod:`nimbus.kernels.train_step`, equal to rounding), one
   float.  Only the ``"3dgs"`` SSIM protocol is offered there.  Both paths agree to ~1e-6 in
   SSIM and ~1e-5 dB in PSNR; their arithmetic is kept apart because each one's figures
   (results files, regression references) must not change by a bit.
@@ -265,9 +266,9 @@ def _ssim_from_moments(filt: Callable, x, y, clamp: Callable | None = None):
     return num / den
 
 
-@functools.lru_cache(maxsize=8)
-def _gaussian_window(device_str: str, dtype: torch.dtype) -> torch.Tensor:
-    """The 2-D window (outer product of the taps) for torch's conv2d.
+@functools.lru_cache(maxsize=1)
+def loss_taps() -> torch.Tensor:
+    """The 1-D window of the torch SSIM (training loss and torch metric): float64 ``[SSIM_WINDOW]``.
 
     The taps are computed as the training loss always computed them, ``exp(-x^2 / (2 sigma^2))``
     in torch: :func:`_gaussian_taps`' ``exp(-(x / sigma)^2 / 2)`` differs by 1 ulp in the two
@@ -276,7 +277,13 @@ def _gaussian_window(device_str: str, dtype: torch.dtype) -> torch.Tensor:
     """
     x = torch.arange(SSIM_WINDOW, dtype=torch.float64) - (SSIM_WINDOW - 1) / 2
     g = torch.exp(-(x**2) / (2 * SSIM_SIGMA**2))
-    g = g / g.sum()
+    return g / g.sum()
+
+
+@functools.lru_cache(maxsize=8)
+def _gaussian_window(device_str: str, dtype: torch.dtype) -> torch.Tensor:
+    """The 2-D window (outer product of :func:`loss_taps`) for torch's conv2d."""
+    g = loss_taps()
     return torch.outer(g, g).to(device=torch.device(device_str), dtype=dtype)
 
 

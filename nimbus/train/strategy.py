@@ -150,15 +150,19 @@ class DefaultStrategy:
         visible = radii > 0
         g = info["means2d_grad"].detach()
         ndc = torch.stack([g[:, 0] * info["width"] * 0.5, g[:, 1] * info["height"] * 0.5], dim=-1).norm(dim=-1)
-        state["grad_accum"][visible] += ndc[visible]
+        # Masked in-place updates rather than boolean indexing (a gather and a scatter over the N
+        # Gaussians per statistic and step): adding 0 to these sums and keeping the old maximum
+        # where a Gaussian is not visible changes no bit.
+        state["grad_accum"] += torch.where(visible, ndc, 0.0)
         weight = info.get("grad2d_weight")
         if weight is not None:
             # Adds the weighted gradient w * ndc as ndc + (w - 1) * ndc: the two roundings of the
             # statistic that the regression figures were made with (one add of w * ndc rounds differently).
             vis = info["visible"]
             state["grad_accum"][vis] += ((weight - 1.0) * ndc)[vis].to(state["grad_accum"])
-        state["denom"][visible] += 1
-        state["max_radii"][visible] = torch.maximum(state["max_radii"][visible], radii[visible].to(state["max_radii"]))
+        state["denom"] += visible
+        state["max_radii"] = torch.where(visible, torch.maximum(state["max_radii"], radii.to(state["max_radii"])),
+                                         state["max_radii"])
 
     def _densify_and_prune(self, params: GaussianParams, state: dict, step: int,
                            generator: torch.Generator) -> dict[str, int]:

@@ -676,6 +676,9 @@ void backward_tile(const Inputs<double>& in, int64_t t, BackwardScratch<double>&
   backward_tile_impl(in, t, s, bin, slots, tile_count);
 }
 
+// Ids per task of the index check: below this the pool is not woken.
+constexpr int64_t kMinCheckGrain = 1 << 16;
+
 void check_inputs(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& colors,
                   const at::Tensor& opacities, const at::Tensor& depths, const at::Tensor& isect_ids,
                   const at::Tensor& tile_offsets, int64_t width, int64_t height, int64_t tile_size,
@@ -711,7 +714,16 @@ void check_inputs(const at::Tensor& means2d, const at::Tensor& conics, const at:
   for (int64_t t = 0; t < tiles; ++t) {
     TORCH_CHECK(off[t] <= off[t + 1], "tile_offsets must be non-decreasing");
   }
+  // The forward and the backward each check every id: in parallel, and only a failed check
+  // looks for the first bad one (the error names it) serially.
   const int64_t* ids = isect_ids.data_ptr<int64_t>();
+  std::atomic<bool> bad{false};
+  at::parallel_for(0, I, kMinCheckGrain, [&](int64_t b, int64_t e) {
+    bool any = false;
+    for (int64_t k = b; k < e; ++k) any |= ids[k] < 0 || ids[k] >= M;
+    if (any) bad.store(true, std::memory_order_relaxed);
+  });
+  if (!bad.load()) return;
   for (int64_t k = 0; k < I; ++k) {
     TORCH_CHECK(ids[k] >= 0 && ids[k] < M, "isect_ids[", k, "] = ", ids[k], " is not in [0, ", M, ")");
   }
@@ -834,20 +846,22 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
         });
 
     // Sum the slots per Gaussian, tiles in order (deterministic); each task owns a
-    // range of Gaussians and skims the whole list, so no two tasks write one row.
-    std::vector<scalar_t> acc(static_cast<size_t>(M) * kSlots, scalar_t(0));
+    // range of Gaussians (and zeroes its rows: no serial memset of M rows) and skims the
+    // whole list, so no two tasks write one row.
+    std::unique_ptr<scalar_t[]> acc(new scalar_t[static_cast<size_t>(M) * kSlots]);
     const int64_t* ids = in.ids;
     const int64_t* off = in.offsets;
     const scalar_t* sl = slots.get();
     const int64_t parts = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), M / 1024));
     auto sum_part = [&](int64_t pb, int64_t pe) {
       const int64_t g0 = M * pb / parts, g1 = M * pe / parts;
+      std::fill(acc.get() + g0 * kSlots, acc.get() + g1 * kSlots, scalar_t(0));
       for (int64_t t = 0; t < tiles; ++t) {
         const int64_t end = off[t] + tile_count[t];
         for (int64_t k = off[t]; k < end; ++k) {
           const int64_t g = ids[k];
           if (g < g0 || g >= g1) continue;
-          scalar_t* row = acc.data() + g * kSlots;
+          scalar_t* row = acc.get() + g * kSlots;
           const scalar_t* src = sl + k * kSlots;
           for (int j = 0; j < kSlots; ++j) row[j] += src[j];
         }
@@ -866,7 +880,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     scalar_t* ga = g_abs.data_ptr<scalar_t>();
     at::parallel_for(0, M, 4096, [&](int64_t gb, int64_t ge) {
       for (int64_t g = gb; g < ge; ++g) {
-        const scalar_t* row = acc.data() + g * kSlots;
+        const scalar_t* row = acc.get() + g * kSlots;
         gm[2 * g] = row[0];
         gm[2 * g + 1] = row[1];
         gc[3 * g] = row[2];

@@ -1,0 +1,229 @@
+// The training step's kernels (nimbus/kernels/train_step.py): the loss with its gradient, and
+// the finiteness check of the gradients, each in one pass.
+//
+// The loss (1 - lambda) L1 + lambda (1 - mean SSIM) of one [H, W, C] image pair
+// (optionally masked) and its gradient w.r.t. the prediction are one op.
+//
+// The SSIM is the 3dgs protocol of nimbus/metrics/image.py (Gaussian window, zero 'same'
+// padding, mean over the map); the 2-D window is the outer product of its taps, so every
+// filter here is separable: a horizontal then a vertical pass of taps.size() taps, with
+// the pixel rows as the unit of parallel work.  The torch path runs five 11x11
+// depthwise convolutions forward and their transposes backward; here the forward
+// filters the five moment images (x, y, x^2, y^2, xy) and the same pass already forms
+// the per-pixel derivatives of the SSIM map w.r.t. the three moments that depend on x
+// (E[x], E[x^2], E[xy]); the gradient is their filtered maps combined per pixel:
+//
+//   d mean(S) / d x_p = (1/N) [ F(dS/dE[x])_p + 2 x_p F(dS/dE[x^2])_p + y_p F(dS/dE[xy])_p ]
+//
+// (F: the window filter; it is its own adjoint, being symmetric with zero padding).
+// Sums run over taps in a fixed order and the loss's sums over rows in row order, so
+// the result is bitwise the same for any thread count.  float32 filters in float32 (as
+// the torch path's convolutions do), float64 in float64; the two means are accumulated
+// in double.  Same value as the torch path up to rounding, not bit for bit.
+
+#include <ATen/Dispatch.h>
+#include <ATen/Parallel.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <c10/util/Exception.h>
+#include <torch/library.h>
+
+#include <atomic>
+#include <cmath>
+#include <cstdint>
+#include <memory>
+#include <tuple>
+#include <vector>
+
+namespace nimbus_train_step {
+namespace {
+
+// Rows per parallel task: a row is a few microseconds of work.
+constexpr int64_t kRowGrain = 8;
+
+// Filters every row of `planes` images [P][H][W] horizontally: out[p][y][x] = sum_k w[k] in[p][y][x + k - r].
+template <typename S>
+void filter_rows(const S* in, S* out, int64_t P, int64_t H, int64_t W, const std::vector<S>& w) {
+  const int64_t K = static_cast<int64_t>(w.size()), r = K / 2;
+  at::parallel_for(0, P * H, kRowGrain, [&](int64_t b, int64_t e) {
+    std::vector<S> pad(W + 2 * r, S(0));
+    for (int64_t row = b; row < e; ++row) {
+      const S* src = in + row * W;
+      S* dst = out + row * W;
+      for (int64_t x = 0; x < W; ++x) pad[x + r] = src[x];
+      for (int64_t x = 0; x < W; ++x) dst[x] = w[0] * pad[x];
+      for (int64_t k = 1; k < K; ++k) {
+        const S wk = w[k];
+        const S* p = pad.data() + k;
+        for (int64_t x = 0; x < W; ++x) dst[x] += wk * p[x];
+      }
+    }
+  });
+}
+
+// Vertical pass of one row: dst[x] = sum_k w[k] src[y + k - r][x] over the rows inside the image.
+template <typename S>
+inline void filter_column(const S* plane, S* dst, int64_t y, int64_t H, int64_t W, const std::vector<S>& w) {
+  const int64_t K = static_cast<int64_t>(w.size()), r = K / 2;
+  for (int64_t x = 0; x < W; ++x) dst[x] = S(0);
+  for (int64_t k = 0; k < K; ++k) {
+    const int64_t yy = y + k - r;
+    if (yy < 0 || yy >= H) continue;
+    const S wk = w[k];
+    const S* src = plane + yy * W;
+    for (int64_t x = 0; x < W; ++x) dst[x] += wk * src[x];
+  }
+}
+
+// Returns the loss (0-d) and, when need_grad, its gradient w.r.t. pred [H, W, C] (else an empty tensor).
+// mask: [H, W] of 0 / 1 in pred's dtype, or empty for none: as nimbus.metrics.masked_pair, both
+// images are multiplied by it and both means run over the valid pixels only.
+std::tuple<at::Tensor, at::Tensor> photometric_loss(const at::Tensor& pred, const at::Tensor& gt,
+                                                    const at::Tensor& mask, const at::Tensor& taps,
+                                                    double lambda_dssim, double c1, double c2, bool need_grad) {
+  TORCH_CHECK(pred.dim() == 3 && pred.sizes() == gt.sizes(), "pred and gt must be [H, W, C] of one shape");
+  TORCH_CHECK(pred.scalar_type() == gt.scalar_type(), "pred and gt must share one dtype");
+  TORCH_CHECK(pred.device().is_cpu() && gt.device().is_cpu(), "photometric_loss: CPU tensors only");
+  TORCH_CHECK(pred.is_contiguous() && gt.is_contiguous(), "photometric_loss: inputs must be contiguous");
+  TORCH_CHECK(taps.scalar_type() == at::kDouble && taps.dim() == 1 && taps.size(0) % 2 == 1 &&
+                  taps.is_contiguous(),
+              "taps must be an odd-length contiguous float64 [K] tensor");
+  const int64_t H = pred.size(0), W = pred.size(1), C = pred.size(2), HW = H * W;
+  TORCH_CHECK(H > 0 && W > 0 && C > 0, "photometric_loss: empty image");
+  const bool masked = mask.numel() > 0;
+  TORCH_CHECK(!masked || (mask.sizes() == at::IntArrayRef({H, W}) && mask.scalar_type() == pred.scalar_type() &&
+                          mask.is_contiguous() && mask.device().is_cpu()),
+              "mask must be empty or a contiguous CPU [H, W] tensor of pred's dtype");
+  at::Tensor loss = at::empty({}, pred.options());
+  at::Tensor grad = need_grad ? at::empty({H, W, C}, pred.options()) : at::empty({0}, pred.options());
+  AT_DISPATCH_FLOATING_TYPES(pred.scalar_type(), "photometric_loss", [&] {
+    using S = scalar_t;
+    const S* xp = pred.data_ptr<S>();
+    const S* yp = gt.data_ptr<S>();
+    const S* mp = masked ? mask.data_ptr<S>() : nullptr;
+    const double* tp = taps.data_ptr<double>();
+    const std::vector<S> w(tp, tp + taps.size(0));
+    const S C1 = static_cast<S>(c1), C2 = static_cast<S>(c2);
+    // Planar moments [5][C][H][W]: x, y, x^2, y^2, xy; the L1 sum per row (C * H rows).  Every
+    // element of both buffers is written before it is read: left uninitialised.
+    std::unique_ptr<S[]> mom(new S[5 * C * HW]), hmom(new S[5 * C * HW]);
+    std::vector<double> row_l1(C * H, 0.0), row_ssim(C * H, 0.0);
+    at::parallel_for(0, C * H, kRowGrain, [&](int64_t b, int64_t e) {
+      for (int64_t row = b; row < e; ++row) {
+        const int64_t c = row / H, y = row % H;
+        double l1 = 0.0;
+        for (int64_t x = 0; x < W; ++x) {
+          S a = xp[(y * W + x) * C + c], g = yp[(y * W + x) * C + c];
+          if (masked) {
+            a *= mp[y * W + x];
+            g *= mp[y * W + x];
+          }
+          const int64_t i = c * HW + y * W + x;
+          mom[i] = a;
+          mom[C * HW + i] = g;
+          mom[2 * C * HW + i] = a * a;
+          mom[3 * C * HW + i] = g * g;
+          mom[4 * C * HW + i] = a * g;
+          l1 += std::abs(static_cast<double>(a) - static_cast<double>(g));
+        }
+        row_l1[row] = l1;
+      }
+    });
+    filter_rows(mom.get(), hmom.get(), 5 * C, H, W, w);
+    // The moments' filtered values are no longer needed once the map and its derivatives
+    // are formed: `mom` is reused for dS/dE[x], dS/dE[x^2], dS/dE[xy] (planes 0..2).
+    S* dmap = mom.get();
+    at::parallel_for(0, C * H, kRowGrain, [&](int64_t b, int64_t e) {
+      std::vector<S> f(5 * W);
+      for (int64_t row = b; row < e; ++row) {
+        const int64_t c = row / H, y = row % H;
+        for (int q = 0; q < 5; ++q) filter_column(hmom.get() + (q * C + c) * HW, f.data() + q * W, y, H, W, w);
+        double sum = 0.0;
+        for (int64_t x = 0; x < W; ++x) {
+          const S mx = f[x], my = f[W + x];
+          const S sxx = f[2 * W + x] - mx * mx, syy = f[3 * W + x] - my * my, sxy = f[4 * W + x] - mx * my;
+          const S A = S(2) * mx * my + C1, B = S(2) * sxy + C2;
+          const S Cm = mx * mx + my * my + C1, D = sxx + syy + C2;
+          const S den = Cm * D;
+          const S s = (A * B) / den;
+          const S wq = masked ? mp[y * W + x] : S(1);  // the pixel's weight in the mean
+          sum += static_cast<double>(masked ? s * wq : s);
+          if (need_grad) {
+            const S d_mx = wq * (S(2) * my * B / den - s * S(2) * mx / Cm);  // sigma's held fixed
+            const S d_sxy = wq * (S(2) * A / den);
+            const S d_sxx = wq * (-s / D);
+            const int64_t i = c * HW + y * W + x;
+            dmap[i] = d_mx - S(2) * mx * d_sxx - my * d_sxy;  // E[x] enters mu_x, sxx and sxy
+            dmap[C * HW + i] = d_sxx;
+            dmap[2 * C * HW + i] = d_sxy;
+          }
+        }
+        row_ssim[row] = sum;
+      }
+    });
+    double l1 = 0.0, ssim = 0.0;
+    for (int64_t row = 0; row < C * H; ++row) {
+      l1 += row_l1[row];
+      ssim += row_ssim[row];
+    }
+    double valid = static_cast<double>(HW);
+    if (masked) {
+      valid = 0.0;
+      for (int64_t i = 0; i < HW; ++i) valid += static_cast<double>(mp[i]);
+    }
+    const double n = static_cast<double>(C) * valid;
+    *loss.data_ptr<S>() = static_cast<S>((1.0 - lambda_dssim) * (l1 / n) + lambda_dssim * (1.0 - ssim / n));
+    if (!need_grad) return;
+    filter_rows(dmap, hmom.get(), 3 * C, H, W, w);
+    S* gp = grad.data_ptr<S>();
+    const S k_l1 = static_cast<S>((1.0 - lambda_dssim) / n), k_ssim = static_cast<S>(-lambda_dssim / n);
+    at::parallel_for(0, C * H, kRowGrain, [&](int64_t b, int64_t e) {
+      std::vector<S> f(3 * W);
+      for (int64_t row = b; row < e; ++row) {
+        const int64_t c = row / H, y = row % H;
+        for (int q = 0; q < 3; ++q) filter_column(hmom.get() + (q * C + c) * HW, f.data() + q * W, y, H, W, w);
+        for (int64_t x = 0; x < W; ++x) {
+          const int64_t i = (y * W + x) * C + c;
+          const S wp = masked ? mp[y * W + x] : S(1);
+          const S a = xp[i] * wp, g = yp[i] * wp;
+          const S ds = f[x] + S(2) * a * f[W + x] + g * f[2 * W + x];
+          const S sign = a > g ? S(1) : (a < g ? S(-1) : S(0));  // torch's abs backward: 0 at a tie
+          gp[i] = masked ? (k_l1 * sign + k_ssim * ds) * wp : k_l1 * sign + k_ssim * ds;
+        }
+      }
+    });
+  });
+  return {loss, grad};
+}
+
+// --- the gradient guard ------------------------------------------------------------------
+// Elements per task of all_finite.
+constexpr int64_t kFiniteGrain = 1 << 15;
+
+// Whether every element of every tensor is finite (one read pass, no temporaries).
+bool all_finite(const std::vector<at::Tensor>& tensors) {
+  for (const at::Tensor& x : tensors) {
+    TORCH_CHECK(x.is_contiguous() && x.device().is_cpu(), "all_finite: contiguous CPU tensors only");
+    bool ok = true;
+    AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "all_finite", [&] {
+      const scalar_t* d = x.data_ptr<scalar_t>();
+      std::atomic<bool> bad{false};
+      at::parallel_for(0, x.numel(), kFiniteGrain, [&](int64_t b, int64_t e) {
+        bool any = false;
+        for (int64_t i = b; i < e; ++i) any |= !std::isfinite(d[i]);
+        if (any) bad.store(true, std::memory_order_relaxed);
+      });
+      ok = !bad.load();
+    });
+    if (!ok) return false;
+  }
+  return true;
+}
+
+}  // namespace
+}  // namespace nimbus_train_step
+
+TORCH_LIBRARY(nimbus_train_step, m) {
+  m.def("photometric_loss", &nimbus_train_step::photometric_loss);
+  m.def("all_finite", &nimbus_train_step::all_finite);
+}

@@ -1,0 +1,92 @@
+"""The training step's compiled CPU kernels: the loss with its gradient, and the gradients' finiteness check.
+
+:func:`photometric_loss` computes what :func:`nimbus.losses.photometric_loss` computes with
+torch ops (the 3dgs SSIM protocol of :mod:`nimbus.metrics.image`: Gaussian window, zero
+'same' padding, mean over the map) for one ``[H, W, C]`` pair (with its validity mask), with
+separable filters instead of five 11x11 depthwise convolutions and their transposes; the
+forward also forms the gradient w.r.t. the prediction, which the backward only scales.
+Equal to the torch loss up to float rounding (not bit for bit).  :func:`all_finite` is
+``all(torch.isfinite(t).all() for t in tensors)``, in one read pass without temporaries
+where it can.  Every result is bitwise the same for any thread count.
+
+The kernels (``csrc/train_step.cpp``) are their own library (:data:`EXTENSION`, built and
+cached by :class:`nimbus.kernels.extension.Extension`, apart from the rasterizer's);
+:func:`loss_usable` says when the loss applies, and :mod:`nimbus.losses` takes the torch
+ops otherwise.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+from nimbus.kernels.extension import Extension
+
+__all__ = ["loss_usable", "photometric_loss", "all_finite", "EXTENSION"]
+
+#: train_step.cpp (torch.ops.nimbus_train_step).
+EXTENSION = Extension("nimbus_train_step", ("train_step.cpp",), kernel="training-step kernels (loss, gradient check)",
+                      fallback="the torch loss and isfinite")
+
+
+def loss_usable(pred: Tensor, gt: Tensor, mask: Tensor | None) -> bool:
+    """Whether the kernel can compute this loss: one CPU float32/float64 ``[H, W, C]`` pair, a mask (if any) of
+    their ``[H, W]``, no gradient wanted for ``gt`` or the mask, and the library builds (no warning when it does
+    not: the torch loss is the same)."""
+    return (pred.dim() == 3 and pred.shape == gt.shape and pred.device.type == "cpu" and gt.device.type == "cpu"
+            and pred.dtype in (torch.float32, torch.float64) and gt.dtype == pred.dtype and not gt.requires_grad
+            and (mask is None or (mask.shape == pred.shape[:2] and mask.device.type == "cpu"
+                                  and not mask.requires_grad))
+            and EXTENSION.available(warn=False))
+
+
+class _PhotometricLoss(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, pred, gt, mask, taps, lambda_dssim, c1, c2):
+        loss, grad = torch.ops.nimbus_train_step.photometric_loss(pred, gt, mask, taps, lambda_dssim, c1, c2,
+                                                            ctx.needs_input_grad[0])
+        ctx.save_for_backward(grad)
+        return loss
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_loss):
+        (grad,) = ctx.saved_tensors
+        return grad_loss * grad, None, None, None, None, None, None
+
+
+def photometric_loss(pred: Tensor, gt: Tensor, lambda_dssim: float, taps: Tensor, c1: float, c2: float,
+                     mask: Tensor | None = None) -> Tensor:
+    """``(1 - lambda_dssim) mean|pred - gt| + lambda_dssim (1 - mean SSIM(pred, gt))`` (0-d, pred's dtype).
+
+    Parameters
+    ----------
+    pred, gt : Tensor [H, W, C]
+        CPU, one dtype (float32 or float64); the gradient flows to ``pred`` only (:func:`loss_usable`).
+    lambda_dssim : float
+    taps : Tensor [K] float64
+        The 1-D SSIM window (odd K, summing to 1); the 2-D window is its outer product.
+    c1, c2 : float
+        SSIM's stabilising constants.
+    mask : bool Tensor [H, W], optional
+        Validity mask, as :func:`nimbus.metrics.masked_pair` applies it: both images zeroed outside it,
+        both means over its pixels (at least one).
+    """
+    EXTENSION.require("nimbus.kernels.train_step")
+    weight = pred.new_empty(0) if mask is None else mask.detach().to(pred.dtype).contiguous()
+    return _PhotometricLoss.apply(pred.contiguous(), gt.detach().contiguous(), weight, taps.detach().contiguous(),
+                                  float(lambda_dssim), float(c1), float(c2))
+
+
+def _cpu_float(t: Tensor) -> bool:
+    return t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64) and t.is_contiguous()
+
+
+def all_finite(tensors: list[Tensor]) -> bool:
+    """Whether every element of every tensor is finite: one read pass without temporaries for contiguous CPU
+    float tensors when the library loads, ``torch.isfinite`` for the others."""
+    kernel = [t for t in tensors if _cpu_float(t)] if EXTENSION.available(warn=False) else []
+    if kernel and not torch.ops.nimbus_train_step.all_finite(kernel):
+        return False
+    return all(bool(torch.isfinite(t).all()) for t in tensors if not any(t is k for k in kernel))
