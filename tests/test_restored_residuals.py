@@ -55,7 +55,7 @@ def _stage1(scene, out, source: str) -> dict:
     def end_and_keep(step):
         events = end_stage1(step)
         kept["params"] = {k: v.detach().clone() for k, v in m.params.tensors.items()}
-        kept["excesses"] = view_excesses(m.cfg, m.train_images, m._composites(step)[1])
+        kept["excesses"] = view_excesses(m._consistency_check(), m._composites(step)[1])
         kept["stored"] = [m.particulate.store.get(i).clone() for i in range(len(m.train_images))]
         return events
 
