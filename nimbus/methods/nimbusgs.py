@@ -197,7 +197,7 @@ class NimbusGS(GaussianSplatting):
             return {"clean": clean, "T": torch.ones_like(clean[..., :1]), "P": torch.zeros_like(clean), "con": clean}
         t0 = time.perf_counter()
         ext = self._extinction_image(self.train_views[vi].camera) if self.medium.field is None else None
-        T, P = self.medium.forward(self._rays_for(vi), render, self.descriptors[vi], ext)
+        T, P = self.medium.forward(self._rays_for(vi), render, self.descriptors[vi], ext, self.train_images[vi])
         self.timing["csm_forward_s"] += time.perf_counter() - t0
         return {"clean": clean, "T": T, "P": P, "con": compose(clean, T, P)}
 

@@ -1,15 +1,20 @@
 """Airlight A: the colour that the medium scatters into each ray (CSM's P = sum_i T_i (1 - e^-tau_i) A).
 
-Three variants share ``module(dirs [P, 3], transmission [P], descriptor [D]) -> A [P, 3]``
-(values in (0, 1)):
+Three variants share ``module(dirs [P, 3], transmission [P], descriptor [D], pixels [P, 3] | None)
+-> A [P, 3]`` (values in (0, 1); ``pixels`` is the degraded input at the rays' pixels):
 
 * :class:`NetworkAirlight` (paper default): a small MLP conditioned on the degraded input
-  and on T.  The input enters through a per-view *global* descriptor (the dark-channel
-  airlight estimate of He et al. and the mean colour, :func:`view_descriptor`), not its
-  pixels: a per-pixel copy of I_in would let ``P`` reproduce the input with T -> 0 and
-  leave the clean render unconstrained.  T enters per pixel (detached: it conditions
-  the colour, it is not a path for the extinction's gradient).  The output starts at the
-  view's dark-channel estimate (zero-initialised last layer around its logit).
+  and on T.  T enters per pixel (detached: it conditions the colour, it is not a path for
+  the extinction's gradient).  How the input enters is ``airlight_input``:
+
+  - ``view`` (ours): through a per-view *global* descriptor (the dark-channel airlight
+    estimate of He et al. and the mean colour, :func:`view_descriptor`) and the ray
+    direction, not its pixels: a per-pixel copy of I_in would let ``P`` reproduce the
+    input with T -> 0 and leave the clean render unconstrained.
+  - ``pixel`` (the paper's words): the input's colour at the pixel, and T.
+
+  Either way the output starts at the view's dark-channel estimate (zero-initialised
+  last layer around its logit).
 * :class:`ConstantAirlight`: one RGB colour for the scene.
 * :class:`SHAirlight`: SH of the ray direction (the authors' released code).
 """
@@ -24,6 +29,8 @@ from nimbus.render.sh import num_sh_bases, sh_basis
 
 #: Length of :func:`view_descriptor`.
 DESCRIPTOR_SIZE = 6
+#: Input features of the network airlight per ``airlight_input``: (d, T, descriptor) or (I_in pixel, T).
+_NETWORK_INPUTS = {"view": 3 + 1 + DESCRIPTOR_SIZE, "pixel": 3 + 1}
 #: Fraction of the brightest dark-channel pixels whose colour estimates the airlight (He et al.: 0.1 %).
 AIRLIGHT_TOP_FRACTION = 0.001
 #: Bounds of the initial airlight estimate, so its logit is finite.
@@ -62,7 +69,7 @@ class ConstantAirlight(nn.Module):
         super().__init__()
         self.logit = nn.Parameter(_logit(init.detach().float()))
 
-    def forward(self, dirs: Tensor, transmission: Tensor, descriptor: Tensor) -> Tensor:
+    def forward(self, dirs: Tensor, transmission: Tensor, descriptor: Tensor, pixels: Tensor | None = None) -> Tensor:
         return torch.sigmoid(self.logit).expand(dirs.shape[0], 3)
 
 
@@ -75,7 +82,7 @@ class SHAirlight(nn.Module):
         self.base = nn.Parameter(_logit(init.detach().float()))
         self.coeffs = nn.Parameter(torch.zeros(num_sh_bases(degree), 3))
 
-    def forward(self, dirs: Tensor, transmission: Tensor, descriptor: Tensor) -> Tensor:
+    def forward(self, dirs: Tensor, transmission: Tensor, descriptor: Tensor, pixels: Tensor | None = None) -> Tensor:
         return torch.sigmoid(self.base + sh_basis(self.degree, dirs) @ self.coeffs)
 
 
@@ -101,18 +108,30 @@ class _WideInputLinear(torch.autograd.Function):
 
 
 class NetworkAirlight(nn.Module):
-    """A = sigmoid(logit(A_dark(view)) + MLP(d, T, descriptor)); see the module docstring."""
+    """A = sigmoid(logit(A_dark(view)) + MLP(inputs)); see the module docstring.
 
-    def __init__(self, hidden: int) -> None:
+    ``inputs`` (``airlight_input``): ``view`` -> (d, T, descriptor), 10 features;
+    ``pixel`` -> (I_in at the pixel, T), 4 features.  Two hidden layers of ``hidden``.
+    """
+
+    def __init__(self, hidden: int, inputs: str = "view") -> None:
         super().__init__()
-        self.mlp = nn.Sequential(nn.Linear(3 + 1 + DESCRIPTOR_SIZE, hidden), nn.SiLU(), nn.Linear(hidden, hidden),
+        if inputs not in _NETWORK_INPUTS:
+            raise ValueError(f"unknown airlight input {inputs!r}")
+        self.inputs = inputs
+        self.mlp = nn.Sequential(nn.Linear(_NETWORK_INPUTS[inputs], hidden), nn.SiLU(), nn.Linear(hidden, hidden),
                                  nn.SiLU(), nn.Linear(hidden, 3))
         nn.init.zeros_(self.mlp[-1].weight)
         nn.init.zeros_(self.mlp[-1].bias)
 
-    def forward(self, dirs: Tensor, transmission: Tensor, descriptor: Tensor) -> Tensor:
+    def forward(self, dirs: Tensor, transmission: Tensor, descriptor: Tensor, pixels: Tensor | None = None) -> Tensor:
         n = dirs.shape[0]
-        x = torch.cat([dirs, transmission.detach()[:, None], descriptor.expand(n, DESCRIPTOR_SIZE)], dim=1)
+        if self.inputs == "pixel":
+            if pixels is None:
+                raise ValueError("airlight_input='pixel' needs the input's pixels [P, 3]")
+            x = torch.cat([pixels.detach().to(transmission.dtype), transmission.detach()[:, None]], dim=1)
+        else:
+            x = torch.cat([dirs, transmission.detach()[:, None], descriptor.expand(n, DESCRIPTOR_SIZE)], dim=1)
         first = self.mlp[0]
         h = _WideInputLinear.apply(x, first.weight, first.bias)
         for layer in self.mlp[1:]:
@@ -120,10 +139,11 @@ class NetworkAirlight(nn.Module):
         return torch.sigmoid(_logit(descriptor[:3]) + h)
 
 
-def make_airlight(kind: str, init: Tensor, hidden: int, sh_degree: int) -> nn.Module:
-    """The airlight module named ``kind`` (``network``, ``constant``, ``sh``); ``init`` [3] seeds the fixed ones."""
+def make_airlight(kind: str, init: Tensor, hidden: int, sh_degree: int, inputs: str = "view") -> nn.Module:
+    """The airlight module named ``kind`` (``network``, ``constant``, ``sh``); ``init`` [3] seeds the fixed ones,
+    ``inputs`` is the network's conditioning (``view`` or ``pixel``)."""
     if kind == "network":
-        return NetworkAirlight(hidden)
+        return NetworkAirlight(hidden, inputs)
     if kind == "constant":
         return ConstantAirlight(init)
     if kind == "sh":

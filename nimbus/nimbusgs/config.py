@@ -27,6 +27,9 @@ without DCP / DCP kept in stage 2 ``lambda_dcp=0`` / ``dcp_stage2=true``
 without TV                        ``lambda_tv=0``
 M_init in {1k, 2k, 4k, 10k, 15k}  ``m_init=...`` (:func:`paper_m_init` scales it)
 ================================  ==========================================
+
+NimbusGS as the paper's text writes it (every field marked "ours" below set back to the
+paper's statement) is ``--method nimbus-paper`` (:data:`nimbus.methods.registry.PAPER`).
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ from nimbus.train.config import SCHEDULE_FIELDS, TrainConfig, lookup_preset, res
 COMPONENTS = ("csm", "plm", "ggs")
 EXTINCTIONS = ("grid", "uniform", "gaussian")
 AIRLIGHTS = ("network", "constant", "sh")
+AIRLIGHT_INPUTS = ("view", "pixel")
 RESIDUAL_SOURCES = ("render", "restored")
 REFRESH_MODES = ("all", "lazy")
 OUTLIER_SCOPES = ("all", "unchecked")
@@ -137,8 +141,15 @@ class NimbusConfig(TrainConfig):
     airlight : str
         ``network`` (paper: an MLP conditioned on the degraded input and T), ``constant``
         (one RGB colour) or ``sh`` (SH of the ray direction, as the released code).
+    airlight_input : str
+        What the ``network`` airlight sees of the degraded input besides T.  ``view`` (ours):
+        the ray direction and the view's global descriptor (dark-channel airlight estimate,
+        mean colour), so ``P`` cannot copy the input pixel by pixel with T -> 0.  ``pixel``
+        (the paper's words, "conditioned on the degraded image I_in and transmission T"):
+        the input's colour at the pixel and T.  See :mod:`nimbus.nimbusgs.airlight`.
     airlight_hidden : int
-        Width of the airlight MLP's two hidden layers.
+        Width of the airlight MLP's two hidden layers (the paper's MLP has 0.2M parameters:
+        448 with ``airlight_input=pixel``, as ``nimbus-paper``).
     airlight_sh_degree : int
         SH degree of the ``sh`` airlight (0..3).
     lr_airlight : float
@@ -251,6 +262,7 @@ class NimbusConfig(TrainConfig):
     surface_depth_grad: bool = False
     # airlight
     airlight: str = "network"
+    airlight_input: str = "view"
     airlight_hidden: int = 64
     airlight_sh_degree: int = 1
     lr_airlight: float = 5e-4
@@ -293,7 +305,8 @@ class NimbusConfig(TrainConfig):
         "box_content_factor": at_least(1, also=(0,), note="0 keeps every centre"),
         "ray_samples": at_least(1), "init_transmission": between(0, 1, hi_open=True, note="0: estimate"),
         "lr_extinction": at_least(0), "surface_alpha_min": between(0, 1, lo_open=True),
-        "airlight": one_of(*AIRLIGHTS), "airlight_hidden": at_least(1), "airlight_sh_degree": between(0, 3),
+        "airlight": one_of(*AIRLIGHTS), "airlight_input": one_of(*AIRLIGHT_INPUTS), "airlight_hidden": at_least(1),
+        "airlight_sh_degree": between(0, 3),
         "lr_airlight": at_least(0),
         "lambda_dcp": at_least(0), "dcp_form": one_of(*DCP_FORMS), "dcp_patch": at_least(1),
         "dcp_temperature": at_least(0, note="0: hard minimum"), "lambda_tv": at_least(0),

@@ -89,7 +89,8 @@ class Medium:
         else:
             self.ext_log_scale = torch.tensor(math.log(scale), device=device, requires_grad=True)
             groups.append({"params": [self.ext_log_scale], "lr": c.lr_extinction, "name": "extinction"})
-        self.airlight = make_airlight(c.airlight, airlight, c.airlight_hidden, c.airlight_sh_degree).to(device)
+        self.airlight = make_airlight(c.airlight, airlight, c.airlight_hidden, c.airlight_sh_degree,
+                                      c.airlight_input).to(device)
         groups.append({"params": list(self.airlight.parameters()), "lr": c.lr_airlight, "name": "airlight"})
         self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=c.adam_eps)
         self.initial_transmission = transmission
@@ -97,12 +98,13 @@ class Medium:
 
     # --- T and P ---------------------------------------------------------------------------
     def forward(self, rays: ViewRays, render: dict, descriptor: Tensor,
-                extinction_image: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                extinction_image: Tensor | None = None, image: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """``(T [H, W, 1], P [H, W, 3])`` of one view.
 
         ``render`` has the view's ``depth`` and ``alpha`` (the march ends at the surface); ``descriptor``
-        conditions the airlight; ``extinction_image`` [H, W] is the alpha-blended per-Gaussian extinction
-        (only for ``extinction="gaussian"``).
+        and ``image`` (the degraded input [H, W, 3]; needed by ``airlight_input="pixel"``) condition the
+        airlight; ``extinction_image`` [H, W] is the alpha-blended per-Gaussian extinction (only for
+        ``extinction="gaussian"``).
         """
         c = self.cfg
         depth, alpha = render["depth"], render["alpha"]
@@ -114,7 +116,7 @@ class Medium:
             res = march(self.field, rays.origin, rays.dirs, t_start, t_end, c.ray_samples, march_backend(c))
         else:
             res = gaussian_extinction_map(extinction_image, alpha, t_start, t_end)
-        a = self.airlight(rays.dirs, res.transmission, descriptor)
+        a = self.airlight(rays.dirs, res.transmission, descriptor, None if image is None else image.reshape(-1, 3))
         h, w = rays.height, rays.width
         return res.transmission.reshape(h, w, 1), (res.scatter[:, None] * a).reshape(h, w, 3)
 
