@@ -36,6 +36,7 @@ from typing import Iterator
 import cv2
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from nimbus.data import Camera
 from nimbus.data.camera import rotation_from_quaternion_wxyz
@@ -212,7 +213,10 @@ class RunRenderer:
 
     def _medium(self, camera: Camera, render: dict, vi: int, extinction: float) -> tuple:
         """``(T [H, W, 1], P [H, W, 3])`` of ``camera`` through the learned medium, the airlight conditioned on
-        the nearest training view ``vi`` (NimbusGS's ``compose`` is written for training views only)."""
+        the nearest training view ``vi`` (NimbusGS's ``compose`` is written for training views only).  An
+        airlight conditioned on the input's pixels (``airlight_input="pixel"``, nimbus-paper) has no input at a
+        new camera: it gets view ``vi``'s input resized to the frame, an approximation that is exact only at
+        that view."""
         method = self.method
         if method.medium is None:  # no CSM: nothing between the camera and the scene
             return torch.ones_like(render["rgb"][..., :1]), torch.zeros_like(render["rgb"])
@@ -220,7 +224,9 @@ class RunRenderer:
         with scaled_extinction(method.medium, extinction):
             # The per-Gaussian extinction ablation has no field: its extinction is a render of the Gaussians.
             ext = method._extinction_image(camera) if method.medium.field is None else None
-            return method.medium.forward(rays, render, method.descriptors[vi], ext)
+            image = F.interpolate(method.train_images[vi].permute(2, 0, 1)[None], size=(camera.height, camera.width),
+                                  mode="bilinear", align_corners=False)[0].permute(1, 2, 0)
+            return method.medium.forward(rays, render, method.descriptors[vi], ext, image=image)
 
     def frame_time(self, camera: Camera, layer: str = "clean", repeats: int = 3) -> float:
         """Median seconds of one :meth:`render` of ``camera`` in ``layer`` (after one warm-up frame)."""

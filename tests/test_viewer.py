@@ -137,6 +137,24 @@ def test_a_frame_goes_to_the_panel_with_its_time(viewer):
     assert viewer.frame_s > 0 and "fps" in viewer.timing.content
 
 
+def test_a_pixel_conditioned_airlight_renders_its_layers(tmp_path):
+    """nimbus-paper's airlight reads the input's pixels, which a new camera has not: the viewer gives it the
+    nearest training view's input, and at that view's own camera its P is the method's airlight layer."""
+    run = _train(tmp_path / "paper", "nimbus-paper", "--set", "m_init=2", "--set", "airlight_hidden=8")
+    v = start_viewer(run, ViewerConfig(port=0, render_height=12))
+    try:
+        method = v.runner.method
+        assert method.medium.airlight.inputs == "pixel"
+        for layer in ("degraded", "T", "P"):
+            image = v.renderer.render(v.current_camera(), layer)
+            assert np.isfinite(image).all() and image.shape[0] == 12
+        cam = method.train_views[1].camera
+        expected = method.render(cam, view_index=1)["airlight"].detach().numpy()
+        np.testing.assert_allclose(v.renderer.render(cam, "P"), np.clip(expected, 0, 1), atol=1e-5)
+    finally:
+        v.stop()
+
+
 def test_a_3dgs_run_shows_the_clean_render_only(tmp_path):
     run = _train(tmp_path / "gs", "3dgs")
     v = start_viewer(run, ViewerConfig(port=0, render_height=12))
