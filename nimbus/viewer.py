@@ -40,6 +40,7 @@ import torch.nn.functional as F
 
 from nimbus.data import Camera
 from nimbus.data.camera import rotation_from_quaternion_wxyz
+from nimbus.data.images import to_uint8
 from nimbus.errors import NimbusError
 from nimbus.methods.nimbusgs import NimbusGS
 from nimbus.nimbusgs.degradation import Medium, compose
@@ -154,7 +155,7 @@ def thumbnail(image: np.ndarray, side: int) -> np.ndarray:
     h, w = image.shape[:2]
     f = min(1.0, side / max(h, w))
     small = cv2.resize(image, (max(1, round(w * f)), max(1, round(h * f))), interpolation=cv2.INTER_AREA)
-    return np.clip(np.rint(small * 255), 0, 255).astype(np.uint8)
+    return to_uint8(small)
 
 
 # --- rendering -----------------------------------------------------------------------------------
@@ -396,7 +397,7 @@ class Viewer:
         t0 = time.perf_counter()
         image = self.renderer.render(self.current_camera(), self.layer.value, float(self.extinction.value))
         self.frame_s = time.perf_counter() - t0
-        self.image.image = np.clip(np.rint(image * 255), 0, 255).astype(np.uint8)
+        self.image.image = to_uint8(image)
         h, w = image.shape[:2]
         self.timing.content = (f"render {w}x{h} `{self.layer.value}`: {1000 * self.frame_s:.0f} ms "
                                f"({1 / max(self.frame_s, 1e-9):.1f} fps, {self.config.device})")
