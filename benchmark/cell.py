@@ -41,12 +41,14 @@ from typing import Callable, Iterable, Sequence
 
 from benchmark.store import ResultsStore
 from nimbus.errors import NimbusError
+from weather_synth.settings import DEFAULT_PROTOCOL, FAMILY_SEPARATOR, parse_family_setting, parse_setting
 
 #: Seed of the built-in scenes' rendering and of the weather synthesis: fixed, so every
 #: method and every training seed sees the same degraded images.
 SCENE_SEED = 0
 SYNTH_SEED = 0
-SYNTH_PROTOCOL = "onerestore"
+#: The default family's synthesis protocol (the paper's data); other families are named ``SETTING@PROTOCOL``.
+SYNTH_PROTOCOL = DEFAULT_PROTOCOL
 DEFAULT_PRESET = "tiny"
 DEFAULT_SIZE = "tiny"
 PARTIAL_SUFFIX = ".partial"
@@ -144,16 +146,12 @@ def scene_dir(root: Path, cell: Cell) -> Path:
 
 def family_dir(root: Path, data_name: str, protocol: str) -> Path:
     """The folder of a scene's degraded settings in one protocol family (the default family's: ``data/<scene>``)."""
-    from weather_synth.settings import FAMILY_SEPARATOR
-
     return Path(root) / "data" / (data_name if protocol == SYNTH_PROTOCOL else
                                   f"{data_name}{FAMILY_SEPARATOR}{protocol}")
 
 
 def data_dir(root: Path, cell: Cell) -> Path:
     """The degraded setting folder a cell trains on."""
-    from weather_synth.settings import parse_family_setting
-
     family = parse_family_setting(cell.weather)
     return family_dir(root, cell.data_name, family.protocol) / family.setting.name
 
@@ -186,7 +184,6 @@ def synthesize(clean: Path, out: Path, settings: Sequence[str], config=None, *, 
     from nimbus.data.io import load_scene
     from weather_synth.config import protocol_config
     from weather_synth.dataset import degrade_scene
-    from weather_synth.settings import parse_setting
 
     degrade_scene(load_scene(clean), out, [parse_setting(w) for w in settings],
                   protocol_config(SYNTH_PROTOCOL, SYNTH_SEED) if config is None else config, overwrite=True,
@@ -204,7 +201,6 @@ def prepare_data(root: str | os.PathLike, cells: Iterable[Cell], progress: bool 
     """
     from weather_synth.config import protocol_config
     from weather_synth.dataset import MANIFEST
-    from weather_synth.settings import parse_family_setting
 
     root = Path(root)
     need: dict[Cell, dict[str, list[str]]] = {}  # scene -> protocol family -> setting names
