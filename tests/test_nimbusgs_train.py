@@ -292,6 +292,24 @@ def test_cli_trains_a_named_variant(tmp_path):
     assert cfg["method"] == "nimbus-no-ggs" and cfg["config"]["m_init"] == 2
 
 
+def test_unclipped_ggs_is_written_as_strict_json_and_read_back(tmp_path):
+    """nimbus-paper's ggs_clip=(0, inf) is a setting: config.json spells it "inf" (strict JSON, which
+    Python's default Infinity token is not), and opening the run gives the infinite clip back."""
+    import math
+
+    from nimbus.cli.train import _main
+    from nimbus.train.runner import Runner
+
+    out = tmp_path / "unclipped"
+    assert _main(["builtin:garden:tiny", "--method", "nimbus-full", "--preset", "tiny", "--set", "iterations=4",
+                  "--set", "m_init=2", "--set", "write_decomposition=false", "--set", "ggs_clip=0,inf",
+                  "--out", str(out), "--quiet"]) == 0
+    text = (out / "config.json").read_text()
+    cfg = json.loads(text, parse_constant=lambda token: pytest.fail(f"non-strict JSON token {token}"))
+    assert cfg["config"]["ggs_clip"] == [0.0, "inf"]
+    assert Runner.open(out, progress=False).cfg.ggs_clip == (0.0, math.inf)
+
+
 def test_cli_components_flag_forces_components_and_rejects_misuse(tmp_path, capsys):
     from nimbus.cli.train import _main, main
 

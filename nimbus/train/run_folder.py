@@ -8,6 +8,7 @@ writes it.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -81,3 +82,33 @@ def read_run_config(run: Path) -> dict:
         raise NimbusError(f"{cfg_file}: 'scene_load_args' is {load_args!r}, expected {{\"downscale\": N}} with "
                           f"N >= 1 (or nothing); {fix}")
     return {**saved, "scene_load_args": load_args}
+
+
+def config_record(config) -> dict:
+    """``config``'s fields as strict JSON values: what config.json's ``"config"`` holds.
+
+    A non-finite float is a setting here (nimbus-paper's unclipped ``ggs_clip=(0, inf)``), so it is
+    written as the text ``"inf"`` / ``"-inf"`` / ``"nan"`` (:func:`nimbus.utils.jsonable.jsonable`),
+    not as the ``Infinity`` token other JSON readers refuse; :func:`config_from_record` reads it back.
+    """
+    from nimbus.utils.jsonable import jsonable
+
+    return jsonable(dataclasses.asdict(config), nonfinite="text")
+
+
+def _field_value(value, numeric: bool):
+    if isinstance(value, list):
+        return tuple(_field_value(v, numeric) for v in value)
+    if numeric and isinstance(value, str) and value in ("inf", "-inf", "nan"):
+        return float(value)
+    return value
+
+
+def config_from_record(config_cls, record: dict):
+    """The ``config_cls`` instance :func:`config_record` wrote (lists back to tuples; the text of a
+    non-finite number back to a float, in fields whose annotation names ``float`` only).
+
+    Raises TypeError / ValueError / NimbusError as ``config_cls(**...)`` does for fields that do not fit.
+    """
+    numeric = {f.name for f in dataclasses.fields(config_cls) if "float" in str(f.type)}
+    return config_cls(**{k: _field_value(v, k in numeric) for k, v in record.items()})

@@ -23,7 +23,6 @@ the valid pixels; ``results.json`` records ``masked`` and each masked test view'
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import resource
@@ -49,7 +48,7 @@ from nimbus.render.gaussians import Gaussians
 from nimbus.train.checkpoint import CHECKPOINT, LAST_GOOD, read_checkpoint, write_checkpoint
 from nimbus.train.frame import SceneFrame
 from nimbus.train.ply import write_gaussian_ply
-from nimbus.train.run_folder import load_scene_arg, read_run_config
+from nimbus.train.run_folder import config_from_record, config_record, load_scene_arg, read_run_config
 from nimbus.train.views import view_mask
 from nimbus.utils.fs import atomic_write_json, atomic_write_text
 from nimbus.versions import software_versions
@@ -156,7 +155,7 @@ class Runner:
         saved = read_run_config(run)
         config_cls = type(get_method(saved["method"]).preset("tiny"))
         try:
-            config = config_cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved["config"].items()})
+            config = config_from_record(config_cls, saved["config"])
         except (TypeError, ValueError, NimbusError) as e:
             raise NimbusError(f"{cfg_file}: its 'config' does not fit method {saved['method']!r} ({e}); restore "
                               "the file or start a new run with --out") from None
@@ -334,7 +333,7 @@ class Runner:
     def write_config(self) -> None:
         atomic_write_json(self.out / "config.json", {
             "method": self.method_name, "scene": self.scene_path, "scene_load_args": self.scene_load_args,
-            "seed": self.seed, "config": dataclasses.asdict(self.cfg), "config_type": type(self.cfg).__name__,
+            "seed": self.seed, "config": config_record(self.cfg), "config_type": type(self.cfg).__name__,
             "nimbus_version": nimbus.__version__, "device": str(self.device),
         })
 
