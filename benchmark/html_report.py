@@ -44,7 +44,7 @@ import warnings
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import TYPE_CHECKING, Iterable, Sequence
 from urllib.parse import quote
 
 import numpy as np
@@ -52,6 +52,9 @@ import numpy as np
 from benchmark.tables.model import Block, Column, Row, Table, finite
 from benchmark.tables.results import METRIC_COLUMNS, finished, labelled, ordered, protocols
 from nimbus.errors import NimbusError
+
+if TYPE_CHECKING:
+    from benchmark.score import ImageIndex
 
 PAGE = "index.html"
 IMAGES = "images"
@@ -310,6 +313,7 @@ def view_grids(root: Path, recs: list[dict], images: ImageWriter, options: Repor
             if not names and (data / "test_list.txt").is_file():
                 names = (data / "test_list.txt").read_text().split()
             inputs, cleans = ImageIndex(data / "images"), ImageIndex(data / "clean")
+            render_folders = [render_folder(root, r) for r in cells]
             rows = []
             for name in evenly_spaced(names, options.views):
                 clean_path = cleans.find(name)
@@ -326,8 +330,8 @@ def view_grids(root: Path, recs: list[dict], images: ImageWriter, options: Repor
                                 + "</td>")
                 else:
                     figs.append('<td class="missing">no input</td>')
-                for r, label in zip(cells, labels):
-                    figs.append("<td>" + render_figure(root, r, name, clean, images, f"{key}_{r['cell_id']}")
+                for r, renders in zip(cells, render_folders):
+                    figs.append("<td>" + render_figure(root, r, renders, name, clean, images, f"{key}_{r['cell_id']}")
                                 + "</td>")
                 figs.append("<td>" + figure(images, f"{key}_clean", clean, clean_path, "clean (reference)")
                             + "</td>")
@@ -340,16 +344,24 @@ def view_grids(root: Path, recs: list[dict], images: ImageWriter, options: Repor
     return "\n".join(out)
 
 
-def render_figure(root: Path, rec: dict, name: str, clean: np.ndarray, images: ImageWriter, key: str) -> str:
-    """One cell's render of view ``name`` with its PSNR (the record's, else computed), or why it is missing."""
+def render_folder(root: Path, rec: dict) -> tuple[Path, ImageIndex | None]:
+    """A cell's folder of evaluation renders (its results.json names the split) and its index (None if missing)."""
     from benchmark.score import ImageIndex
+
+    run = root / rec["run_dir"]
+    folder = run / "renders" / read_json(run / "results.json").get("eval_split", "test")
+    return folder, (ImageIndex(folder) if folder.is_dir() else None)
+
+
+def render_figure(root: Path, rec: dict, renders: tuple[Path, ImageIndex | None], name: str, clean: np.ndarray,
+                  images: ImageWriter, key: str) -> str:
+    """One cell's render of view ``name`` (from :func:`render_folder`'s ``renders``) with its PSNR (the record's,
+    else computed), or why it is missing."""
     from nimbus.data.images import read_image
     from nimbus.metrics import peak_signal_noise_ratio
 
-    run = root / rec["run_dir"]
-    split = read_json(run / "results.json").get("eval_split", "test")
-    folder = run / "renders" / split
-    path = ImageIndex(folder).find(name) if folder.is_dir() else None
+    folder, index = renders
+    path = index.find(name) if index is not None else None
     if path is None:
         return f'<span class="missing">no render ({e(folder.relative_to(root))} missing)</span>'
     img = read_image(path)
