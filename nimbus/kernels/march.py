@@ -1,7 +1,8 @@
 """Compiled CPU ray march through an :class:`~nimbus.nimbusgs.scattering.ExtinctionGrid` (forward and backward).
 
-NimbusGS's kernel (``csrc/march.cpp``) is its own library (:data:`EXTENSION`, built and
-cached by :class:`nimbus.kernels.extension.Extension`, apart from the rasterizer's).  It
+NimbusGS's kernels (``csrc/march.cpp``, and ``csrc/airlight.cpp`` for
+:mod:`nimbus.kernels.airlight`) are their own library (:data:`EXTENSION`, built and
+cached by :class:`nimbus.kernels.extension.Extension`, apart from the rasterizer's).  The march
 computes, per ray, the softplus feature integral ``S = ds * sum_i softplus(f(x_i))`` over
 the K uniform samples of
 :func:`nimbus.nimbusgs.scattering.march`, without materialising the ``[P, K, 3]``
@@ -20,8 +21,9 @@ from nimbus.kernels.extension import Extension
 
 __all__ = ["available", "usable", "grid_optical_depth", "EXTENSION"]
 
-#: march.cpp (torch.ops.nimbus_march).
-EXTENSION = Extension("nimbus_march", ("march.cpp",), kernel="ray-march kernel", fallback="the torch ray march")
+#: march.cpp (torch.ops.nimbus_march) and airlight.cpp (torch.ops.nimbus_airlight): one library, one build.
+EXTENSION = Extension("nimbus_march", ("march.cpp", "airlight.cpp"), kernel="ray-march kernel",
+                      fallback="the torch ray march and airlight")
 
 
 def available() -> bool:

@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from nimbus.kernels import airlight as airlight_kernel
 from nimbus.render.sh import num_sh_bases, sh_basis
 
 #: Length of :func:`view_descriptor`.
@@ -112,13 +113,17 @@ class NetworkAirlight(nn.Module):
 
     ``inputs`` (``airlight_input``): ``view`` -> (d, T, descriptor), 10 features;
     ``pixel`` -> (I_in at the pixel, T), 4 features.  Two hidden layers of ``hidden``.
+    ``compiled``: evaluate the MLP, forward and backward, with the fused CPU kernel
+    (:mod:`nimbus.kernels.airlight`; equal to the torch layers up to float rounding) where it
+    applies; False always takes the torch layers.
     """
 
-    def __init__(self, hidden: int, inputs: str = "view") -> None:
+    def __init__(self, hidden: int, inputs: str = "view", compiled: bool = True) -> None:
         super().__init__()
         if inputs not in _NETWORK_INPUTS:
             raise ValueError(f"unknown airlight input {inputs!r}")
         self.inputs = inputs
+        self.compiled = compiled
         self.mlp = nn.Sequential(nn.Linear(_NETWORK_INPUTS[inputs], hidden), nn.SiLU(), nn.Linear(hidden, hidden),
                                  nn.SiLU(), nn.Linear(hidden, 3))
         nn.init.zeros_(self.mlp[-1].weight)
@@ -132,18 +137,24 @@ class NetworkAirlight(nn.Module):
             x = torch.cat([pixels.detach().to(transmission.dtype), transmission.detach()[:, None]], dim=1)
         else:
             x = torch.cat([dirs, transmission.detach()[:, None], descriptor.expand(n, DESCRIPTOR_SIZE)], dim=1)
-        first = self.mlp[0]
-        h = _WideInputLinear.apply(x, first.weight, first.bias)
+        base = _logit(descriptor[:3])
+        layers = (self.mlp[0], self.mlp[2], self.mlp[4])
+        weights = [t for layer in layers for t in (layer.weight, layer.bias)]
+        if self.compiled and airlight_kernel.usable(x, base, *weights):
+            return airlight_kernel.network_airlight(x, base, *weights)
+        h = _WideInputLinear.apply(x, layers[0].weight, layers[0].bias)
         for layer in self.mlp[1:]:
             h = layer(h)
-        return torch.sigmoid(_logit(descriptor[:3]) + h)
+        return torch.sigmoid(base + h)
 
 
-def make_airlight(kind: str, init: Tensor, hidden: int, sh_degree: int, inputs: str = "view") -> nn.Module:
+def make_airlight(kind: str, init: Tensor, hidden: int, sh_degree: int, inputs: str = "view",
+                  compiled: bool = True) -> nn.Module:
     """The airlight module named ``kind`` (``network``, ``constant``, ``sh``); ``init`` [3] seeds the fixed ones,
-    ``inputs`` is the network's conditioning (``view`` or ``pixel``)."""
+    ``inputs`` is the network's conditioning (``view`` or ``pixel``), ``compiled`` lets it use the CPU kernel
+    (:class:`NetworkAirlight`)."""
     if kind == "network":
-        return NetworkAirlight(hidden, inputs)
+        return NetworkAirlight(hidden, inputs, compiled)
     if kind == "constant":
         return ConstantAirlight(init)
     if kind == "sh":
