@@ -212,7 +212,7 @@ class ViewConsistency:
     repeated refreshes of one run.
 
     What does not change between refreshes is computed once, on first use, and kept (about
-    24 bytes per pixel per view): the neighbours, each view's pose and pixel-ray tensors, its
+    20 bytes per pixel per view): the neighbours, each view's pose and pixel-ray tensors, its
     intensity and its maximum-filtered intensity (from the input alone).  :meth:`excesses`
     checks every view at once: the neighbours' samples of a batch of views are taken by one
     ``grid_sample`` per kind over the stacked neighbour maps, and the elementwise arithmetic runs
@@ -261,7 +261,7 @@ class ViewConsistency:
         """The per-view constants stacked over the views (kept): ``rays`` [V, H W, 3], ``R`` [V, 3, 3],
         ``t`` [V, 3], ``lum`` [V, H W], ``bright`` [V, 1, H, W] and ``K`` [V, 4] (fx, fy, cx, cy), float32."""
         if not self._stacked:
-            views = [self._view(i) for i in range(len(self.cameras))]
+            views = [_view_constants(c, img) for c, img in zip(self.cameras, self.images)]
             device = views[0].t.device
             self._stacked = {
                 "rays": torch.stack([v.rays for v in views]), "R": torch.stack([v.R for v in views]),
