@@ -267,11 +267,53 @@ def test_kept_consistency_check_is_the_same_as_the_one_off_function():
     check = ViewConsistency(cams, images, 3)
     assert check.others == neighbours(cams, 3)
     for moved in (geometry, [ViewGeometry(g.camera, g.depth * 1.01, g.valid) for g in geometry]):  # a later refresh
+        batched = check.excesses(moved)
         for i in range(len(cams)):
             once = consistency_excess(i, images, moved, check.others[i])
-            kept = check.excess(i, moved)
-            assert torch.equal(torch.isnan(once), torch.isnan(kept))
-            assert torch.equal(once.nan_to_num(), kept.nan_to_num())  # bit for bit
+            for kept in (check.excess(i, moved), batched[i]):
+                assert torch.equal(torch.isnan(once), torch.isnan(kept))
+                assert torch.equal(once.nan_to_num(), kept.nan_to_num())  # bit for bit
+
+
+def _rough_views(n=7, seed=0):
+    """Rotated cameras around a bumpy surface, partly invalid renders, noisy inputs: every branch of the check
+    (out of view, behind a neighbour's surface, no valid neighbour) is taken somewhere."""
+    gen = np.random.default_rng(seed)
+    cams, images, geometry = [], [], []
+    for i in range(n):
+        a = 0.12 * (i - n // 2)
+        R = np.array([[np.cos(a), 0.0, -np.sin(a)], [0.0, 1.0, 0.0], [np.sin(a), 0.0, np.cos(a)]])
+        cam = Camera(40, 30, 31.0, 29.0, 20.3, 14.6, R, np.array([0.4 * (i - n // 2), 0.05 * i, 0.3]))
+        depth = torch.from_numpy(4.0 + gen.uniform(-0.6, 0.6, (30, 40))).float()
+        valid = torch.from_numpy(gen.uniform(size=(30, 40)) > 0.2)
+        cams.append(cam)
+        images.append(torch.from_numpy(gen.uniform(size=(30, 40, 3))).float())
+        geometry.append(ViewGeometry(cam, depth, valid))
+    return cams, images, geometry
+
+
+def test_batched_consistency_check_is_the_reference_bit_for_bit():
+    cams, images, geometry = _rough_views()
+    for count, batch in ((3, 1 << 21), (4, 2 * 4 * 30 * 40)):  # all views in one batch; two views per batch
+        check = ViewConsistency(cams, images, count)
+        check.BATCH_ELEMENTS = batch
+        batched = check.excesses(geometry)
+        known = 0
+        for i in range(len(cams)):
+            once = consistency_excess(i, images, geometry, check.others[i])
+            assert torch.equal(torch.isnan(once), torch.isnan(batched[i]))
+            assert torch.equal(once.nan_to_num(), batched[i].nan_to_num())
+            known += int((~torch.isnan(once)).sum())
+        assert 0 < known < len(cams) * 30 * 40  # some pixels have a verdict, some have none
+    # Views of different sizes cannot be stacked: each view is checked on its own, with the same result.
+    small = Camera(20, 15, 15.5, 14.5, 10.1, 7.3, cams[0].R, cams[0].t)
+    mixed = [ViewGeometry(small, geometry[0].depth[::2, ::2].clone(), geometry[0].valid[::2, ::2].clone()),
+             *geometry[1:]]
+    images = [images[0][::2, ::2].clone(), *images[1:]]
+    check = ViewConsistency([g.camera for g in mixed], images, 3)
+    for i, kept in enumerate(check.excesses(mixed)):
+        once = consistency_excess(i, images, mixed, check.others[i])
+        assert torch.equal(once.nan_to_num(), kept.nan_to_num())
 
 
 def test_faint_inconsistent_particle_enters_r_only_when_consistency_decides():

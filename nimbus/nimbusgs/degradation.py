@@ -221,7 +221,7 @@ def view_excesses(check: ViewConsistency | None, geometry: list[ViewGeometry]) -
     """Per view, the view-inconsistent excess over its neighbours (None when the check is off)."""
     if check is None:
         return [None] * len(geometry)
-    return [check.excess(i, geometry) for i in range(len(geometry))]
+    return check.excesses(geometry)
 
 
 class ParticulateLayer:
