@@ -197,6 +197,8 @@ def estimate_march_time(config: NimbusConfig, box: Box, camera: Camera, device: 
                             config.surface_alpha_min)
     res = march(grid, rays.origin, rays.dirs, ts, te, config.ray_samples, march_backend(config))
     (res.transmission.sum() + res.scatter.sum()).backward()
+    if device.type == "cuda":  # CUDA runs asynchronously: the clock must wait for the march to finish
+        torch.cuda.synchronize(device)
     return time.perf_counter() - t0
 
 
