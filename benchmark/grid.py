@@ -5,12 +5,13 @@ there); this module builds the list of cells, runs the unfinished ones through a
 and stores each record as it comes back.
 
 Executors
-    :class:`LocalExecutor` runs cells in ``--jobs N`` local worker processes that each run
-    many cells, paying torch's start-up once (a dead worker costs only its cell; each cell's
-    peak memory is its own: :mod:`benchmark.workers`);
-    :class:`DaskExecutor` submits each cell as a task to a Dask distributed cluster (the
-    workers must see ``ROOT`` on a shared file system).  Either way each cell runs through
-    :func:`benchmark.cell.run_cell`, and only the parent process writes the store, as each
+    :class:`LocalExecutor` trains cells in ``--jobs N`` local worker processes that each train
+    many cells, paying torch's start-up once, and scores them in the parent with one LPIPS
+    network (a dead worker costs only its cell; each cell's peak memory is its own:
+    :mod:`benchmark.workers`); :class:`DaskExecutor` submits each cell as a task to a Dask
+    distributed cluster (the workers must see ``ROOT`` on a shared file system).  Either way
+    each cell runs through :func:`benchmark.cell.run_cell` (locally as its two halves,
+    ``train_cell`` and ``score_cell``), and only the parent process writes the store, as each
     cell's record comes back.
 
 Resumption
