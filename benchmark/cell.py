@@ -26,6 +26,7 @@ stability report's call into the Runner), :func:`score_run`, and the questions i
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import os
@@ -53,6 +54,8 @@ DEFAULT_PRESET = "tiny"
 DEFAULT_SIZE = "tiny"
 PARTIAL_SUFFIX = ".partial"
 CELL_FORMAT = "nimbus-bench-cell/1"
+#: Status of a record between :func:`train_cell` and :func:`score_cell` (never stored).
+TRAINED = "trained"
 #: Parameters per Gaussian besides its SH colour: mean 3 + quaternion 4 + log-scale 3 + opacity 1.
 GEOMETRY_PARAMS = 11
 
@@ -314,6 +317,54 @@ def medium_composition(model) -> dict:
     return {k: v for k, v in render.items() if k not in ("rgb", "depth", "alpha", "meta")}
 
 
+@functools.lru_cache(maxsize=None)
+def _loaded_lpips(net: str, device: str | None):
+    from nimbus.metrics import LPIPS
+
+    # No ground-truth feature cache: it would grow over a run's cells, and each cell's
+    # LPIPS is computed from the same batches as by a network loaded for it alone.
+    return LPIPS(net, device=device, gt_cache_mb=0)
+
+
+def scoring_lpips(options: CellOptions):
+    """The LPIPS the cells of ``options`` are scored with, loaded once per process; None without LPIPS.
+
+    Where its weights are not set up this is the network's name: the score then notes LPIPS as
+    missing (:class:`benchmark.metrics.Scorer`).
+    """
+    from nimbus.metrics import WeightsMissing
+
+    if options.lpips_net is None:
+        return None
+    try:
+        return _loaded_lpips(options.lpips_net, options.device)
+    except WeightsMissing:
+        return options.lpips_net
+
+
+def warm_up(options: CellOptions) -> None:
+    """Load now what every cell would load on first use: for a process about to train many cells.
+
+    torch with the cells' threads, the optimiser machinery (an optimiser's first use imports
+    torch._dynamo, ~3 s) and the compiled kernels: no cell's training time then includes them,
+    and every cell's peak memory is measured over the same loaded baseline.  Best effort: what
+    fails here fails again in the cell, which records why.
+    """
+    import torch
+
+    from nimbus.kernels import march, raster, train_step
+
+    if options.threads:
+        torch.set_num_threads(int(options.threads))
+    try:
+        torch.optim.Adam([torch.zeros(1, requires_grad=True)])
+        raster.available(warn=False)
+        for extension in (march.EXTENSION, train_step.EXTENSION):
+            extension.available(warn=False)
+    except Exception:  # noqa: BLE001 - the cell meets it again and records it
+        pass
+
+
 def score_run(run: Path, data: Path, results: dict, *, ssim_protocol: str, lpips_net, device: str | None) -> dict:
     """Score a trained run's renders of its evaluation split against the ground truth of ``data``.
 
@@ -362,7 +413,9 @@ def run_cell(cell: dict | Cell, root: str, options: CellOptions | None = None) -
     """Train, render and score one cell; never raises for a failure of the cell itself.
 
     Runs in a worker (process or Dask task): it reads the prepared data under ``root`` and
-    writes ``root/runs/<cell-id>/``, and returns the record for the parent to store.
+    writes ``root/runs/<cell-id>/``, and returns the record for the parent to store.  It is
+    :func:`train_cell` then :func:`score_cell`; the local executor runs the first in its
+    worker processes and the second in the parent (:mod:`benchmark.workers`).
 
     Returns
     -------
@@ -371,37 +424,56 @@ def run_cell(cell: dict | Cell, root: str, options: CellOptions | None = None) -
         ``error``); ``psnr`` (dB) / ``ssim`` / ``lpips`` means against the clean test views
         and ``per_view`` values; ``ssim_protocol``, ``lpips_net``, ``notes``;
         ``psnr_vs_input`` / ``ssim_vs_input`` (the trainer's, against the degraded views);
-        ``train_time_s``, ``peak_memory_mb`` (of the worker process), ``num_gaussians``,
+        ``train_time_s``, ``peak_memory_mb`` (of the process that trained), ``num_gaussians``,
         ``num_params`` (+ ``num_params_source``), ``render_fps``, ``iterations``;
         ``config``, ``config_hash``; ``versions``; ``input_sha256`` (the degraded dataset's
         manifest), ``output_sha256`` (render name -> sha256); ``run_dir`` (relative to
         root); ``started_at`` / ``finished_at`` (UTC ISO 8601) and ``wall_time_s``.
     """
-    cell = Cell.from_dict(cell) if isinstance(cell, dict) else cell
     options = options or CellOptions()
-    rec = base_record(cell)
+    return score_cell(train_cell(cell, root, options), root, options)
+
+
+def train_cell(cell: dict | Cell, root: str, options: CellOptions) -> dict:
+    """Train one cell and render its test views: its record without scores (status :data:`TRAINED`), or an error
+    record; never raises for a failure of the cell itself."""
+    cell = Cell.from_dict(cell) if isinstance(cell, dict) else cell
+    return _attempt(base_record(cell), lambda: _train_cell(cell, Path(root), options), TRAINED)
+
+
+def score_cell(record: dict, root: str, options: CellOptions) -> dict:
+    """Score the renders of a :func:`train_cell` record: the finished record (``ok`` or ``error``).
+
+    Any other record (an error) is returned as it is.  Never raises for a failure of the cell itself.
+    """
+    if record.get("status") != TRAINED:
+        return record
+    return _attempt(dict(record), lambda: _score_cell(record, Path(root), options), "ok")
+
+
+def _attempt(rec: dict, step: Callable[[], dict], status: str) -> dict:
+    """``rec`` with ``step()``'s fields and ``status``, or with the error it raised; its time added to ``wall_time_s``."""
     t0 = time.perf_counter()
     try:
-        rec.update(_run_cell(cell, Path(root), options))
-        rec["status"] = "ok"
+        rec.update(step())
+        rec["status"] = status
     except NimbusError as e:
         rec.update(status="error", error=str(e))
     except Exception as e:  # recorded, not raised: one broken cell must not stop a grid
         tb = traceback.format_exc(limit=-3)
         rec.update(status="error", error=f"{e.__class__.__name__}: {e}", traceback=tb)
     rec["finished_at"] = utc_now()
-    rec["wall_time_s"] = round(time.perf_counter() - t0, 3)
+    rec["wall_time_s"] = round(rec.get("wall_time_s", 0.0) + time.perf_counter() - t0, 3)
     from nimbus.utils.jsonable import jsonable
 
     return jsonable(rec)
 
 
-def _run_cell(cell: Cell, root: Path, options: CellOptions) -> dict:
+def _train_cell(cell: Cell, root: Path, options: CellOptions) -> dict:
     import torch
 
     from nimbus.data.io import load_scene
     from nimbus.methods.registry import get_method
-    from nimbus.utils.fs import sha256_file
     from weather_synth.dataset import MANIFEST
 
     if options.threads:
@@ -416,29 +488,39 @@ def _run_cell(cell: Cell, root: Path, options: CellOptions) -> dict:
     results, model = train_method(cell.method, scene, config, partial, seed=cell.seed,
                                   scene_path=str(data.resolve()), progress=False, device=options.device)
     num_params, source = _param_count(model, results, config)
-    del model  # scoring needs none of it: free its memory first
     os.replace(partial, final)
-    score = score_run(final, data, results, ssim_protocol=options.ssim_protocol, lpips_net=options.lpips_net,
-                      device=options.device)
-    per_view = [{k: v[k] for k in ("name", "psnr", "ssim", "lpips")} for v in score["per_view"]]
     out = {
-        "psnr": score["mean"]["psnr"], "ssim": score["mean"]["ssim"], "lpips": score["mean"]["lpips"],
-        "per_view": per_view, "ssim_protocol": options.ssim_protocol, "lpips_net": options.lpips_net,
-        "protocol": score["protocol"], "notes": score["notes"], "setup_command": score.get("setup_command"),
-        "ground_truth": score["ground_truth"],
         "psnr_vs_input": results.get("psnr"), "ssim_vs_input": results.get("ssim"),
         "train_time_s": results.get("train_time_s"), "peak_memory_mb": results.get("peak_memory_mb"),
         "num_gaussians": results.get("num_gaussians"), "num_params": num_params, "num_params_source": source,
         "render_fps": results.get("render_fps"), "iterations": results.get("iterations"),
         "device": results.get("device"), "config": dataclasses.asdict(config), "config_hash": config_hash(config),
         "config_type": type(config).__name__,
-        "input_sha256": sha256_file(data / MANIFEST),
-        "output_sha256": {v["name"]: v["pred_sha256"] for v in score["per_view"]},
         "run_dir": str(final.relative_to(root)),
     }
     if "components" in results:
         out["components"] = results["components"]
     return out
+
+
+def _score_cell(record: dict, root: Path, options: CellOptions) -> dict:
+    from nimbus.utils.fs import sha256_file
+    from weather_synth.dataset import MANIFEST
+
+    data = data_dir(root, Cell.from_dict(record))
+    final = root / record["run_dir"]
+    results = json.loads((final / "results.json").read_text())
+    score = score_run(final, data, results, ssim_protocol=options.ssim_protocol, lpips_net=scoring_lpips(options),
+                      device=options.device)
+    per_view = [{k: v[k] for k in ("name", "psnr", "ssim", "lpips")} for v in score["per_view"]]
+    return {
+        "psnr": score["mean"]["psnr"], "ssim": score["mean"]["ssim"], "lpips": score["mean"]["lpips"],
+        "per_view": per_view, "ssim_protocol": options.ssim_protocol, "lpips_net": options.lpips_net,
+        "protocol": score["protocol"], "notes": score["notes"], "setup_command": score.get("setup_command"),
+        "ground_truth": score["ground_truth"],
+        "input_sha256": sha256_file(data / MANIFEST),
+        "output_sha256": {v["name"]: v["pred_sha256"] for v in score["per_view"]},
+    }
 
 
 def _param_count(model, results: dict, config) -> tuple[int | None, str]:

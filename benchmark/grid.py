@@ -5,11 +5,13 @@ there); this module builds the list of cells, runs the unfinished ones through a
 and stores each record as it comes back.
 
 Executors
-    :class:`LocalExecutor` runs cells in local processes (``--jobs N``; by default each
-    cell gets a fresh process, so its peak-memory figure is its own);
-    :class:`DaskExecutor` submits each cell as a task to a Dask distributed cluster (the
-    workers must see ``ROOT`` on a shared file system).  Either way each cell runs through
-    :func:`benchmark.cell.run_cell`, and only the parent process writes the store, as each
+    :class:`LocalExecutor` trains cells in ``--jobs N`` local worker processes that each train
+    many cells, paying torch's start-up once, and scores them in the parent with one LPIPS
+    network (a dead worker costs only its cell; each cell's peak memory is its own:
+    :mod:`benchmark.workers`); :class:`DaskExecutor` submits each cell as a task to a Dask
+    distributed cluster (the workers must see ``ROOT`` on a shared file system).  Either way
+    each cell runs through :func:`benchmark.cell.run_cell` (locally as its two halves,
+    ``train_cell`` and ``score_cell``), and only the parent process writes the store, as each
     cell's record comes back.
 
 Resumption
@@ -33,7 +35,6 @@ import dataclasses
 import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator, Protocol, Sequence
@@ -125,52 +126,30 @@ class InlineExecutor:
 
 
 class LocalExecutor:
-    """Runs cells in local worker processes.
+    """Runs cells in local worker processes, each running many cells (:class:`benchmark.workers.CellWorkers`).
 
     Parameters
     ----------
     jobs : int
         Cells run at once (default 1).  Each worker gets ``max(1, cores // jobs)`` torch threads.
-    fresh_process : bool
-        Start a new process for every cell (default): its peak memory is the cell's own
-        and nothing leaks between cells, for ~2 s of start-up per cell.
     """
 
     name = "local"
 
-    def __init__(self, jobs: int = 1, fresh_process: bool = True) -> None:
+    def __init__(self, jobs: int = 1) -> None:
         if jobs < 1:
             raise NimbusError(f"--jobs must be at least 1, got {jobs}")
         self.jobs = int(jobs)
-        self.fresh_process = fresh_process
 
     def threads(self) -> int:
         return max(1, (os.cpu_count() or 1) // self.jobs)
 
     def imap(self, cells: Sequence[Cell], root: str, options: CellOptions) -> Iterator[dict]:
-        import multiprocessing
+        from benchmark.workers import CellWorkers
 
         if options.threads is None:
             options = dataclasses.replace(options, threads=self.threads())
-        # spawn, not fork: forking a process that has started torch's thread pools can deadlock.
-        pool = ProcessPoolExecutor(max_workers=min(self.jobs, max(len(cells), 1)),
-                                   mp_context=multiprocessing.get_context("spawn"),
-                                   max_tasks_per_child=1 if self.fresh_process else None)
-        started = {}
-        try:
-            futures = {}
-            for c in cells:
-                futures[pool.submit(run_cell, c.to_dict(), root, options)] = c
-                started[c] = utc_now()
-            for fut in as_completed(futures):
-                c = futures[fut]
-                try:
-                    yield fut.result()
-                except Exception as e:  # the worker died (killed, out of memory): the cell failed
-                    yield error_record(c, f"worker process failed ({e.__class__.__name__}: {e}); "
-                                          "out of memory? try fewer --jobs", started[c])
-        finally:
-            pool.shutdown(wait=True, cancel_futures=True)
+        return CellWorkers(self.jobs).imap(cells, root, options)
 
 
 class DaskExecutor:

@@ -171,7 +171,7 @@ def run_regression(root: str | Path, grid: RegressionGrid = REGRESSION_GRID,
     from benchmark.store import load_results
 
     cells = grid.cells()
-    run_grid(cells, root, LocalExecutor(1, fresh_process=False), grid.options(), rerun=True, progress=False,
+    run_grid(cells, root, LocalExecutor(1), grid.options(), rerun=True, progress=False,
              log=log or (lambda s: None))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)

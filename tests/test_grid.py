@@ -34,7 +34,7 @@ def cells(weathers=("H", "R")):
 
 @pytest.fixture(scope="module")
 def finished(tmp_path_factory):
-    """A root where the default local executor (fresh process per cell) ran two cells."""
+    """A root where the default local executor ran two cells (one worker process: the second reuses it)."""
     root = tmp_path_factory.mktemp("bench")
     outcome = run_grid(cells(), root, LocalExecutor(jobs=1), OPTIONS, progress=False, log=lambda s: None)
     return root, outcome
@@ -138,6 +138,80 @@ def test_local_run_records_and_scores_against_clean_views(finished):
         assert {"nimbus", "torch", "numpy", "pycolmap", "cpu_isa"} <= rec["versions"].keys()
         assert rec["peak_memory_mb"] > 0 and rec["render_fps"] > 0 and rec["started_at"] <= rec["finished_at"]
         assert not list((root / "runs").glob("*.partial"))
+
+
+def test_a_reused_worker_gives_a_cell_the_figures_of_a_fresh_one(finished, tmp_path):
+    """Nothing leaks from one cell to the next in a worker: the same renders and scores as a first cell."""
+    root, outcome = finished
+    second = outcome.ran[1]
+    fresh = run_grid([c for c in cells() if c.cell_id == second["cell_id"]], copy_data(root, tmp_path),
+                     LocalExecutor(jobs=1), OPTIONS, progress=False, log=lambda s: None).ran[0]
+    assert fresh["status"] == "ok", fresh.get("error")
+    assert fresh["output_sha256"] == second["output_sha256"]
+    assert fresh["per_view"] == second["per_view"] and fresh["num_gaussians"] == second["num_gaussians"]
+
+
+def test_a_dead_worker_fails_its_cell_only(finished, tmp_path, monkeypatch):
+    """A worker killed mid-cell (out of memory, a signal) costs that cell; a new worker runs the rest."""
+    import os
+    import signal
+
+    from benchmark import workers
+
+    root = copy_data(finished[0], tmp_path)
+    victim = cells(["H", "R", "S"])[1]
+    original = workers._Worker.send
+
+    def send(self, c, *args):
+        taken = original(self, c, *args)
+        if taken and c.cell_id == victim.cell_id:
+            os.kill(self.process.pid, signal.SIGKILL)
+        return taken
+
+    monkeypatch.setattr(workers._Worker, "send", send)
+    outcome = run_grid(cells(["H", "R", "S"]), root, LocalExecutor(jobs=1), OPTIONS, progress=False,
+                       log=lambda s: None)
+    by_id = {r["cell_id"]: r for r in outcome.ran}
+    assert len(by_id) == 3 and [r["cell_id"] for r in outcome.failed] == [victim.cell_id]
+    assert "killed by signal 9" in by_id[victim.cell_id]["error"]
+    assert ResultsStore(root).finished() == {c.cell_id for c in cells(["H", "R", "S"])} - {victim.cell_id}
+    monkeypatch.undo()
+    again = run_grid(cells(["H", "R", "S"]), root, LocalExecutor(jobs=1), OPTIONS, progress=False,
+                     log=lambda s: None)  # resumable: only the lost cell runs again
+    assert [r["cell_id"] for r in again.ran] == [victim.cell_id] and not again.failed
+
+
+def test_peak_memory_resets_between_jobs():
+    from nimbus.utils.memory import peak_rss_mb, reset_peak_rss, status_kb
+
+    if not reset_peak_rss():
+        pytest.skip("this kernel does not let a process reset its resident-set high-water mark")
+    before = peak_rss_mb()
+    big = np.ones(2**25)  # 256 MiB, every page touched
+    assert peak_rss_mb() > before + 200
+    del big
+    assert reset_peak_rss()
+    assert peak_rss_mb() < before + 100 and peak_rss_mb() * 1024 <= status_kb("VmRSS") + 1024
+
+
+def test_a_worker_that_cannot_reset_the_peak_runs_one_cell(monkeypatch):
+    """Where the peak cannot be reset, each cell gets a fresh process (its figure is its own there too)."""
+    import multiprocessing
+    import threading
+
+    from benchmark import workers
+
+    monkeypatch.setattr(workers, "warm_up", lambda options: None)
+    monkeypatch.setattr(workers, "reset_peak_memory", lambda: False)
+    monkeypatch.setattr(workers, "train_cell", lambda c, root, options: {"cell_id": c["scene"]})
+    parent, child = multiprocessing.Pipe()
+    t = threading.Thread(target=workers.serve, args=(child,))
+    t.start()
+    parent.send((cells()[0].to_dict(), "root", OPTIONS))
+    parent.send((cells()[1].to_dict(), "root", OPTIONS))  # never taken
+    assert parent.recv() == ({"cell_id": "garden"}, False)
+    t.join(timeout=10)
+    assert not t.is_alive() and not parent.poll()
 
 
 def test_rerun_skips_finished_cells(finished):

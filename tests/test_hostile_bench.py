@@ -1,7 +1,7 @@
 """``nimbus-bench`` against hostile use (issue 14): two runs on one root, unusable or overlapping folders.
 
-The cells here never train: ``benchmark.cell._run_cell`` is replaced by a fake that does what
-a real cell does to the file system (clear leftovers, fill ``runs/<id>.partial``, rename it into
+The cells here never train: ``benchmark.cell._train_cell`` is replaced by a fake that does what
+a real cell does to the file system (and ``_score_cell`` by nothing) (clear leftovers, fill ``runs/<id>.partial``, rename it into
 place) and can be held in flight, so two runners can be made to overlap without any timing.
 """
 
@@ -157,7 +157,8 @@ def test_second_run_leaves_a_cell_in_flight_alone(tmp_path, monkeypatch):
             return fake_cell(root, c, hold=lambda: (in_flight.set(), go.wait(120)))
         return fake_cell(root, c)
 
-    monkeypatch.setattr(cell_module, "_run_cell", cell_fn)
+    monkeypatch.setattr(cell_module, "_train_cell", cell_fn)
+    monkeypatch.setattr(cell_module, "_score_cell", lambda *a: {})
     monkeypatch.setattr(grid, "prepare_data", lambda *a, **k: None)
     outcomes = {}
     a = threading.Thread(name="A", target=lambda: outcomes.setdefault(
@@ -203,7 +204,7 @@ def test_a_cell_finished_while_waiting_for_its_lock_is_not_rerun(tmp_path, monke
         return real_finished(self)
 
     monkeypatch.setattr(ResultsStore, "finished", finished)
-    monkeypatch.setattr(cell_module, "_run_cell", lambda *a: pytest.fail("the finished cell was run again"))
+    monkeypatch.setattr(cell_module, "_train_cell", lambda *a: pytest.fail("the finished cell was run again"))
     outcome = run_grid([cell], tmp_path, InlineExecutor(), OPTIONS, progress=False, log=lambda s: None)
     assert outcome.skipped == [cell.cell_id] and outcome.ran == [] and run_dir(tmp_path, cell).is_dir()
 
@@ -243,7 +244,8 @@ RUNNER_A = textwrap.dedent("""
     def hold():
         while not go.exists():
             time.sleep(0.05)
-    cell._run_cell = lambda c, root, options: fake_cell(root, c, hold=hold)
+    cell._train_cell = lambda c, root, options: fake_cell(root, c, hold=hold)
+    cell._score_cell = lambda *a: {}
     grid.prepare_data = lambda *a, **k: None
     grid.make_executor = lambda *a: grid.InlineExecutor()  # the fake cell lives in this process
     sys.exit(run_cli(TOOL.run, sys.argv[3:]))
@@ -262,7 +264,7 @@ def test_two_cli_runs_on_one_root(tmp_path, monkeypatch, capsys):
         wait_for(lambda: (partial / "owner.txt").exists() or a.poll() is not None, "runner A's cell")
         assert a.poll() is None, a.communicate()
         owner = (partial / "owner.txt").read_text()
-        monkeypatch.setattr(cell_module, "_run_cell", lambda *args: pytest.fail("B ran A's cell"))
+        monkeypatch.setattr(cell_module, "_train_cell", lambda *args: pytest.fail("B ran A's cell"))
         monkeypatch.setattr(grid, "prepare_data", lambda *args, **k: None)
         rc = run_cli(TOOL.run, RUN_ARGS + ["--root", str(root)])
         out, err = capsys.readouterr()

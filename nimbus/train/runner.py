@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import shutil
 import sys
 import time
@@ -51,17 +50,18 @@ from nimbus.train.ply import write_gaussian_ply
 from nimbus.train.run_folder import config_from_record, config_record, load_scene_arg, read_run_config
 from nimbus.train.views import view_mask
 from nimbus.utils.fs import atomic_write_json, atomic_write_text
+from nimbus.utils.memory import peak_rss_mb
 from nimbus.versions import software_versions
 
 LOG = "train_log.jsonl"
 
 
 def peak_memory_mb(device: torch.device) -> float:
-    """Peak memory of this process: CUDA allocator peak on a GPU, else the resident-set high-water mark."""
+    """Peak memory of this process: CUDA allocator peak on a GPU, else the resident-set high-water mark
+    (:func:`nimbus.utils.memory.peak_rss_mb`)."""
     if device.type == "cuda":
         return torch.cuda.max_memory_allocated(device) / 2**20
-    rss_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return rss_kb / 1024.0
+    return peak_rss_mb()
 
 
 

@@ -1,0 +1,181 @@
+"""Local worker processes for the benchmark grid: each one runs many cells, one at a time.
+
+A cell of the default (tiny) benchmark trains for a few seconds, while a new Python process
+needs as long again to import torch, torch._dynamo (the optimiser's first use imports it) and
+the compiled kernels, and scoring needs as long to load the LPIPS network.
+:class:`CellWorkers` therefore starts ``jobs`` processes once and sends each of them cell after
+cell: a worker trains the cell and renders its test views (:func:`benchmark.cell.train_cell`),
+and the parent scores them (:func:`benchmark.cell.score_cell`) with one LPIPS network loaded
+for the whole run, while that worker waits.  The LPIPS network (~0.4 GB resident) thus never
+sits in a training process, whose peak memory is the cell's figure.
+
+Start-up
+    A worker is spawned (not forked: forking a process that has started torch's thread pools
+    can deadlock), sets its torch threads, and loads what every cell would otherwise load on
+    first use (:func:`benchmark.cell.warm_up`) before its first cell, so that no cell's
+    training time includes it and every cell starts from the same resident baseline.
+
+Isolation
+    A cell that raises is recorded failed by ``train_cell`` / ``score_cell`` themselves.  A worker that dies (killed,
+    out of memory, a crash in native code) loses only the cell it was running: that cell is
+    recorded failed, a new worker takes its place, and the other cells go on.
+
+Peak memory
+    The runner reports the process's resident-set high-water mark (``VmHWM``; see
+    :func:`nimbus.train.runner.peak_memory_mb`).  Before each cell the worker frees what it can
+    and resets that mark (Linux: ``5`` written to ``/proc/self/clear_refs``), so a cell's figure is
+    the peak while it ran, over the warmed worker's baseline, never an earlier cell's peak.  Where
+    the mark cannot be reset (no ``/proc``, not writable) a worker runs one cell and exits, and
+    the next cell gets a fresh process, as every cell did before.
+"""
+
+from __future__ import annotations
+
+import gc
+from multiprocessing.connection import Connection, wait
+from typing import Iterator, Sequence
+
+from benchmark.cell import Cell, CellOptions, error_record, score_cell, train_cell, utc_now, warm_up
+from nimbus.utils.memory import reset_peak_rss
+
+
+def reset_peak_memory() -> bool:
+    """Free what the last cell left and reset this process's peak memory; whether the peak was reset.
+
+    A CUDA device's allocator peak is reset too when CUDA is in use.
+    """
+    import torch
+
+    gc.collect()
+    _trim_heap()
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        torch.cuda.empty_cache()
+        torch.cuda.reset_peak_memory_stats()
+    return reset_peak_rss()
+
+
+def _trim_heap() -> None:
+    """Give the C heap's free pages back to the system (glibc), so a cell's baseline is what is in use."""
+    import ctypes
+
+    try:
+        ctypes.CDLL(None).malloc_trim(0)  # this process's own symbols: libc's where it is glibc
+    except (OSError, AttributeError):  # another C library: nothing to trim
+        pass
+
+
+def serve(conn: Connection) -> None:
+    """A worker's life: train each ``(cell, root, options)`` received, until ``None`` or the parent is gone.
+
+    Warms up before its first cell (and again should the options change); exits after one cell
+    where the peak memory cannot be reset between cells.
+    """
+    warmed = None
+    while True:
+        try:
+            task = conn.recv()
+        except EOFError:
+            return
+        if task is None:
+            return
+        cell, root, options = task
+        if warmed != options:
+            warm_up(options)
+            warmed = options
+        reusable = reset_peak_memory()
+        conn.send((train_cell(cell, root, options), reusable))
+        if not reusable:
+            return
+
+
+class _Worker:
+    """One spawned worker process, the pipe to it, and the cell it is running (None when idle)."""
+
+    def __init__(self, ctx) -> None:
+        self.conn, child = ctx.Pipe()
+        self.process = ctx.Process(target=serve, args=(child,), name="nimbus-bench-worker")
+        self.process.start()
+        child.close()
+        self.cell: Cell | None = None
+        self.started_at: str | None = None
+        #: False once it has said it takes no further cell (or died).
+        self.reusable = True
+
+    def send(self, cell: Cell, root: str, options: CellOptions) -> bool:
+        """Hand it a cell; False when it has died meanwhile (the cell is not taken)."""
+        try:
+            self.conn.send((cell.to_dict(), root, options))
+        except OSError:
+            self.reusable = False
+            return False
+        self.cell, self.started_at = cell, utc_now()
+        return True
+
+    def result(self) -> dict:
+        """The record of its cell as it sent it (trained, not scored), or a failure when it died without one."""
+        cell, self.cell = self.cell, None
+        try:
+            if self.conn.poll():
+                record, self.reusable = self.conn.recv()
+                return record
+        except (EOFError, OSError):
+            pass
+        self.reusable = False
+        self.process.join()
+        code = self.process.exitcode
+        how = f"killed by signal {-code}" if code is not None and code < 0 else f"exit status {code}"
+        return error_record(cell, f"worker process died ({how}) while running the cell; out of memory? "
+                                  "try fewer --jobs", self.started_at)
+
+    def stop(self) -> None:
+        """Ask it to exit after its current cell, and wait until it has."""
+        try:
+            self.conn.send(None)
+        except OSError:  # it has exited already
+            pass
+        self.process.join()
+        self.conn.close()
+
+
+class CellWorkers:
+    """Runs cells in ``jobs`` long-lived local worker processes, yielding each record as it comes back.
+
+    Parameters
+    ----------
+    jobs : int
+        Workers, i.e. cells running at once (at most one per cell).
+    """
+
+    def __init__(self, jobs: int) -> None:
+        self.jobs = jobs
+
+    def imap(self, cells: Sequence[Cell], root: str, options: CellOptions) -> Iterator[dict]:
+        import multiprocessing
+
+        ctx = multiprocessing.get_context("spawn")
+        todo = list(cells)[::-1]  # taken from the end: table order
+        workers: list[_Worker] = []
+        try:
+            while True:
+                for w in [w for w in workers if not w.reusable]:
+                    w.stop()  # it died, or ran its one cell (the peak memory cannot be reset here)
+                    workers.remove(w)
+                while todo and len(workers) < self.jobs:
+                    workers.append(_Worker(ctx))
+                for w in workers:
+                    if w.cell is None and todo and w.send(todo[-1], root, options):
+                        todo.pop()
+                busy = [w for w in workers if w.cell is not None]
+                if not busy:
+                    if todo:
+                        continue  # the idle workers had died: replaced above
+                    break
+                by_handle = {**{w.conn: w for w in busy}, **{w.process.sentinel: w for w in busy}}
+                for handle in wait(list(by_handle)):
+                    w = by_handle[handle]
+                    if w.cell is not None:
+                        # Scored here while the worker waits: no cell trains beside its own scoring.
+                        yield score_cell(w.result(), root, options)
+        finally:
+            for w in workers:
+                w.stop()
