@@ -11,6 +11,7 @@ import torch
 from nimbus.data.builtin import render_builtin
 from nimbus.data.scene import View
 from nimbus.errors import NimbusError
+from nimbus.nimbusgs.auto import particle_thresholds
 from nimbus.nimbusgs.config import NimbusConfig
 from nimbus.nimbusgs.ggs import ggs_weights, ndc_grad_norm
 from nimbus.methods.nimbusgs import NimbusGS
@@ -170,6 +171,10 @@ def test_auto_picks_the_components_each_scene_needs(clean, hazy, rainy, tmp_path
         nim = res["nimbus"]
         assert nim["mode"] == "auto" and nim["haze_evidence"]["dark_median"] >= 0
         assert nim["particle_evidence"] is not None
+        # A scene declared hazy is judged by the haze pair of particle thresholds, and the record says which.
+        ev, hazy = nim["particle_evidence"], nim["haze_evidence"]["present"]
+        assert ev["hazy"] == hazy == (name == "hazy")
+        assert (ev["asymmetry_threshold"], ev["energy_threshold"]) == particle_thresholds(cfg, hazy)
         if name == "clean":
             assert t.method.particulate is None and nim["residual_refreshes"] == 0 and "csm_forward_s" not in nim["time_s"]
             assert nim["estimated_time_saved_s"]["csm_ray_march_s"] > 0
