@@ -161,6 +161,11 @@ class Cell:
     particles: dict[bool, tuple[float, float]]
 
     @property
+    def complete(self) -> bool:
+        """All four variants ran (``--quick`` runs only the PLM pair at the current haze decision)."""
+        return len(self.psnr) == len(VARIANTS)
+
+    @property
     def csm_gain(self) -> float:
         p = self.psnr
         return max(p["csm+plm"], p["csm"]) - max(p["plm"], p["none"])
@@ -175,14 +180,44 @@ class Cell:
 
 
 def gather(cells: list[tuple[str, str, Path]], recs: dict) -> list[Cell]:
+    """The :class:`Cell` of each scene and setting from the variants that ran."""
     out = []
     for data, setting, _ in cells:
-        r = {v: recs[(data, setting, v)] for v in VARIANTS}
+        r = {v: recs[(data, setting, v)] for v in VARIANTS if (data, setting, v) in recs}
         ev = {csm: (r[name]["particles"]["asymmetry"], r[name]["particles"]["energy"])
-              for csm, name in ((True, "csm+plm"), (False, "plm"))}
-        out.append(Cell(data, setting, {v: r[v]["psnr"] for v in VARIANTS}, r["none"]["haze"]["dark_median"],
-                        r["none"]["haze"]["dark_depth_corr"], ev))
+              for csm, name in ((True, "csm+plm"), (False, "plm")) if name in r}
+        haze = next(iter(r.values()))["haze"]
+        out.append(Cell(data, setting, {v: x["psnr"] for v, x in r.items()}, haze["dark_median"],
+                        haze["dark_depth_corr"], ev))
     return out
+
+
+def current_haze(folder: Path, preset: str) -> bool:
+    """The haze decision of the current defaults for a scene folder (as the ``nimbus`` run will make it)."""
+    import torch
+
+    from benchmark.cell import make_config
+    from nimbus.data.io import load_scene
+    from nimbus.methods.registry import get_method
+    from nimbus.nimbusgs.auto import haze_evidence
+
+    cfg = make_config(get_method(METHOD), preset, {})
+    scene = load_scene(folder)
+    views = scene.train_views
+    # Depth ranks and dark channels do not change with the training frame's similarity transform.
+    return haze_evidence([torch.from_numpy(v.load_image()) for v in views], [v.camera for v in views],
+                         scene.points, cfg.dcp_patch, cfg.auto_dark_threshold, cfg.auto_depth_corr).present
+
+
+def variant_jobs(cells: list[tuple[str, str, Path]], preset: str, quick: bool) -> list:
+    """The four variants of each cell (``quick``: only the PLM pair at the current haze decision), the PLM pairs
+    first, so a run cut short has the particle decision's evidence and gains for every cell."""
+    pairs, rest = [], []
+    for cell in cells:
+        hazy = current_haze(cell[2], preset)
+        for name, (csm, plm) in VARIANTS.items():
+            (pairs if csm == hazy else rest).append((cell, name, variant_overrides(csm, plm)))
+    return pairs if quick else pairs + rest
 
 
 def _cuts(values, lo: float, hi: float) -> list[float]:
@@ -226,6 +261,9 @@ def choose(needed: np.ndarray, declare, candidates: list[tuple], current: tuple)
 def derive_haze(cells: list[Cell], current: tuple[float, float]) -> tuple[tuple, int, bool]:
     from nimbus.nimbusgs.auto import haze_present
 
+    if not all(c.complete for c in cells):  # no CSM gains without both CSM states
+        return current, -1, True
+
     needed = np.array([c.csm_gain >= MIN_GAIN_DB for c in cells])
     dm = np.array([c.dark_median for c in cells])
     corr = np.array([c.dark_depth_corr for c in cells])
@@ -259,9 +297,10 @@ def _cell_table(cells: list[Cell], hazy: np.ndarray) -> list[str]:
              "PSNR csm+plm / csm / plm / none"]
     for c, h in zip(cells, hazy):
         a, e = c.particles[bool(h)]
-        p = " / ".join(f"{c.psnr[v]:.2f}" for v in VARIANTS)
+        p = " / ".join(f"{c.psnr[v]:.2f}" if v in c.psnr else "-" for v in VARIANTS)
+        csm = f"{c.csm_gain:+7.2f}" if c.complete else f"{'-':>7}"
         lines.append(f"{c.data + ' ' + c.setting:<24} {c.dark_median:6.3f} {c.dark_depth_corr:6.2f} "
-                     f"{c.csm_gain:+7.2f} {a:6.3f} {e:8.5f} {c.plm_gain(bool(h)):+7.2f}  {p}")
+                     f"{csm} {a:6.3f} {e:8.5f} {c.plm_gain(bool(h)):+7.2f}  {p}")
     return lines
 
 
@@ -271,8 +310,9 @@ def report_derivation(cells: list[Cell]) -> None:
 
     (dark, corr), false, kept = derive_haze(cells, (C.auto_dark_threshold, C.auto_depth_corr))
     hazy = np.array([haze_present(c.dark_median, c.dark_depth_corr, dark, corr) for c in cells])
-    print(f"haze rule: auto_dark_threshold={dark} auto_depth_corr={corr} ({'current kept; ' if kept else ''}"
-          f"{false} cells declared hazy that gain < {MIN_GAIN_DB} dB from CSM)")
+    note = (f"{false} cells declared hazy that gain < {MIN_GAIN_DB} dB from CSM" if false >= 0
+            else "not derived: --quick ran one CSM state per cell")
+    print(f"haze rule: auto_dark_threshold={dark} auto_depth_corr={corr} ({'current kept; ' if kept else ''}{note})")
     print("\n".join(_cell_table(cells, hazy)))
     for group, fields in ((False, ("auto_particle_threshold", "auto_particle_energy")),
                           (True, ("auto_particle_threshold_haze", "auto_particle_energy_haze"))):
@@ -313,18 +353,20 @@ def report_auto(cells: list[Cell]) -> None:
     short = 0
     for c in cells:
         hazy = haze_present(c.dark_median, c.dark_depth_corr, cfg.auto_dark_threshold, cfg.auto_depth_corr)
+        if hazy not in c.particles:
+            print(f"{c.data + ' ' + c.setting:<24} auto's CSM state ({hazy}) not run")
+            continue
         a, e = c.particles[hazy]
         ta, te = particle_thresholds(cfg, hazy)
-        plm = a >= ta and e >= te
-        choice = {(True, True): "csm+plm", (True, False): "csm", (False, True): "plm", (False, False): "none"}[
-            (hazy, plm)]
+        choice = {on: name for name, on in VARIANTS.items()}[(hazy, bool(a >= ta and e >= te))]
         best, top = c.best()
         gap = top - c.psnr[choice]
         short += gap >= MIN_GAIN_DB
         flag = "  <-- auto >= %.1f dB below the best" % MIN_GAIN_DB if gap >= MIN_GAIN_DB else ""
         print(f"{c.data + ' ' + c.setting:<24} auto {choice:<8} {c.psnr[choice]:6.2f}  best {best:<8} {top:6.2f}"
               f"  gap {gap:.2f}{flag}")
-    print(f"{short} of {len(cells)} cells with auto >= {MIN_GAIN_DB} dB below the best variant")
+    print(f"{short} of {len(cells)} cells with auto >= {MIN_GAIN_DB} dB below the best variant"
+          + ("" if all(c.complete for c in cells) else " that ran (--quick: the PLM pair only)"))
 
 
 def report_cells(root: Path, sizes: list[str]) -> list[tuple[str, str, Path]]:
@@ -348,6 +390,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--jobs", type=int, default=1, help="runs trained at once")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads per run")
     parser.add_argument("--checks", action="store_true", help="also what the top-hat cap and outlier scope are worth")
+    parser.add_argument("--quick", action="store_true", help="only the PLM pair at the current haze decision "
+                        "(no CSM gains: the haze rule is not derived)")
     parser.add_argument("--report", action="store_true", help="auto on the benchmark's seed-0 cells (report only)")
     args = parser.parse_args(argv)
     root = Path(args.root or ("auto-report" if args.report else "auto-validation"))
@@ -355,23 +399,18 @@ def main(argv: list[str] | None = None) -> int:
     cache.mkdir(parents=True, exist_ok=True)
     sizes = [s.strip() for s in args.sizes.split(",") if s.strip()]
     cells = report_cells(root, sizes) if args.report else cell_folders(root, sizes)
-    jobs = [(cell, name, variant_overrides(*on)) for cell in cells for name, on in VARIANTS.items()]
-    recs = train_all(jobs, cache, args.preset, args.jobs, args.threads)
+    recs = train_all(variant_jobs(cells, args.preset, args.quick), cache, args.preset, args.jobs, args.threads)
     gathered = gather(cells, recs)
     if args.report:
         report_auto(gathered)
         return 0
     report_derivation(gathered)
     if args.checks:
-        from nimbus.nimbusgs.auto import haze_present
-        from nimbus.nimbusgs.config import NimbusConfig as C
-
         jobs = []
         for cell in cells:  # PLM on, CSM as the current haze rule decides
             if cell[1] == CLEAN:
                 continue
-            h = recs[(cell[0], cell[1], "none")]["haze"]
-            hazy = haze_present(h["dark_median"], h["dark_depth_corr"], C.auto_dark_threshold, C.auto_depth_corr)
+            hazy = current_haze(cell[2], args.preset)
             jobs += [(cell, name, variant_overrides(hazy, True, extra)) for name, extra in CHECKS.items()]
         checks = train_all(jobs, cache, args.preset, args.jobs, args.threads)
         report_checks([c for c in gathered if c.setting != CLEAN], checks)
