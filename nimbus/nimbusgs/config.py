@@ -237,7 +237,7 @@ class NimbusConfig(TrainConfig):
         same particles give about half the asymmetry and energy.
 
     The four particle thresholds are derived on validation scenes (scene and synthesis
-    seed 1, the benchmark's are 0) by ``python -m benchmark.auto_thresholds``: the lowest
+    seed 1, the benchmark's are 0) by ``python -m benchmark.auto_thresholds --quick``: the lowest
     values that still declare every scene and setting where forcing PLM gains >= 0.3 dB,
     placed half-way to the next lower value seen (see :mod:`nimbus.nimbusgs.auto`).
 
