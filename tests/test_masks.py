@@ -270,7 +270,7 @@ def test_nimbus_bench_score_reads_the_scenes_masks(tmp_path):
 @pytest.mark.slow
 def test_nimbusgs_particle_evidence_ignores_masked_streaks(tmp_path):
     """Rain streaks only in the masked half of every training view must not switch on the particulate layer."""
-    from tests.test_nimbusgs_train import _cfg, _degrade, _downscale
+    from tests.test_nimbusgs_train import SEPARATING_THRESHOLDS, _cfg, _degrade, _downscale
 
     s = _downscale(render_builtin("garden", size="tiny", seed=0))
     clean = s.with_views(s.train_views[::2] + s.test_views)
@@ -289,7 +289,7 @@ def test_nimbusgs_particle_evidence_ignores_masked_streaks(tmp_path):
             views.append(dataclasses.replace(v, image=img, mask=mask if use_mask else None))
         return clean.with_views(views)
 
-    cfg = _cfg(components="auto", iterations=41, m_init=40, write_decomposition=False)
+    cfg = _cfg(components="auto", iterations=41, m_init=40, write_decomposition=False, **SEPARATING_THRESHOLDS)
     picked = {k: Runner("nimbus", half_rain(k == "masked"), cfg, tmp_path / k, seed=0, progress=False).run()["components"]
               for k in ("masked", "unmasked")}
     assert "plm" in picked["unmasked"], picked

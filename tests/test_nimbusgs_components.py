@@ -11,7 +11,7 @@ from nimbus.data.camera import Camera
 from nimbus.errors import NimbusError
 from nimbus.nimbusgs.airlight import (ConstantAirlight, NetworkAirlight, SHAirlight, estimate_airlight,
                                       view_descriptor)
-from nimbus.nimbusgs.auto import haze_evidence, particle_evidence, residual_tail_counts
+from nimbus.nimbusgs.auto import haze_evidence, particle_evidence, particle_thresholds, residual_tail_counts
 from nimbus.nimbusgs.config import NimbusConfig, paper_m_init, parse_components, preset
 from nimbus.nimbusgs.ggs import GGSFactors, ggs_weights, robust_normalise, sample_error, scale_gradients
 from nimbus.nimbusgs.losses import dcp_loss, soft_dark_channel
@@ -476,6 +476,45 @@ def test_particle_evidence_sees_additive_thin_structures():
     clean_ev = particle_evidence([residual_tail_counts(fit, con)], 0.3)
     rain_ev = particle_evidence([residual_tail_counts(rainy, con)], 0.3)
     assert not clean_ev.present and rain_ev.present and rain_ev.energy > clean_ev.energy
+
+
+def test_particles_seen_through_a_veil_are_judged_by_the_haze_pair():
+    """Streaks behind a veil (transmission 0.4) with the larger misfit of a hazy fit: both statistics drop to less
+    than half, the default haze pair still declares them, and a symmetric misfit is not declared by either pair."""
+    gen = torch.Generator().manual_seed(0)
+    h, w = 96, 128
+
+    def misfit(scale):  # Laplace: a misfit with tails on both sides
+        u = torch.rand(h, w, 1, generator=gen) - 0.5
+        return -scale * torch.sign(u) * torch.log1p(-2 * u.abs())
+
+    def veil(x):
+        return x * 0.4 + 0.8 * 0.6
+
+    scene = torch.rand(h, w, 3, generator=gen) * 0.5
+    streaks = torch.zeros(h, w, 3)
+    streaks[5:88, 3::9] = 0.3
+    m_clear, m_hazy = misfit(0.02), misfit(0.04)
+    cfg = NimbusConfig()
+
+    def evidence(image, composite, hazy):
+        return particle_evidence([residual_tail_counts(image, composite)], *particle_thresholds(cfg, hazy), hazy=hazy)
+
+    clear_rain = evidence(scene + streaks + m_clear, scene, False)
+    hazy_rain = evidence(veil(scene + streaks) + m_hazy, veil(scene), True)
+    assert clear_rain.present and hazy_rain.present and hazy_rain.hazy and not clear_rain.hazy
+    assert hazy_rain.asymmetry < clear_rain.asymmetry / 2 and hazy_rain.energy < clear_rain.energy / 2
+    # The pair follows the haze decision, and the decision is "asymmetry >= a and energy >= e" with that pair.
+    a, e = particle_thresholds(cfg, True)
+    assert (a, e) == (cfg.auto_particle_threshold_haze, cfg.auto_particle_energy_haze)
+    assert (a, e) != particle_thresholds(cfg, False)
+    assert (hazy_rain.asymmetry_threshold, hazy_rain.energy_threshold) == (a, e)
+    for hazy in (False, True):
+        ev = evidence(veil(scene + streaks) + m_hazy, veil(scene), hazy)
+        ta, te = particle_thresholds(cfg, hazy)
+        assert ev.present == (ev.asymmetry >= ta and ev.energy >= te)
+    assert not evidence(scene + m_clear, scene, False).present
+    assert not evidence(veil(scene) + m_hazy, veil(scene), True).present
 
 
 # --- config and registry --------------------------------------------------------------------

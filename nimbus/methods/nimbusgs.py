@@ -47,7 +47,8 @@ from nimbus.data import Camera
 from nimbus.data.images import write_image
 from nimbus.methods.gs3d import GaussianSplatting
 from nimbus.nimbusgs.airlight import view_descriptor
-from nimbus.nimbusgs.auto import ParticleEvidence, haze_evidence, particle_evidence, residual_tail_counts
+from nimbus.nimbusgs.auto import (ParticleEvidence, haze_evidence, particle_evidence, particle_thresholds,
+                                  residual_tail_counts)
 from nimbus.nimbusgs.config import NimbusConfig
 from nimbus.nimbusgs.degradation import (DEHAZE_MIN_TRANSMISSION, INIT_TRANSMISSION_RANGE, Medium,
                                          ParticulateLayer, compose, consistency_check, estimate_march_time,
@@ -327,7 +328,8 @@ class NimbusGS(GaussianSplatting):
         if self.use_plm is None:
             counts = [residual_tail_counts(valid_image(self.train_images[vi], self.train_masks[vi], con), con, ex)
                       for vi, (con, ex) in enumerate(zip(composites, excesses))]
-            self.particles = particle_evidence(counts, c.auto_particle_threshold, c.auto_particle_energy)
+            # In auto mode use_csm is the haze decision: a hazy scene has its own thresholds.
+            self.particles = particle_evidence(counts, *particle_thresholds(c, self.use_csm), hazy=self.use_csm)
             self.use_plm = self.particles.present
             self.use_ggs = self.use_csm or self.use_plm
             if not self.use_plm:

@@ -1,0 +1,420 @@
+"""The validation runs behind ``components=auto``'s thresholds (:mod:`nimbus.nimbusgs.auto`), and what they show.
+
+    python -m benchmark.auto_thresholds [--root DIR] [--sizes tiny] [--cache DIR] [--jobs N] [--checks]
+    python -m benchmark.auto_thresholds --report [--root DIR] [--cache DIR]
+
+On the validation scenes (the built-in scenes rendered and degraded with seed 1, as
+:mod:`benchmark.restore_thresholds` makes them; the benchmark's cells use seed 0), each scene's
+seven settings and its clean views, trains ``nimbus`` (tiny preset, training seed 0) four times:
+CSM on or off crossed with PLM on or off (GGS on when either is, as ``auto`` does).  Each
+decision is made one way through ``auto`` itself, by thresholds it cannot fail or cannot meet,
+so every run records the same evidence an ``auto`` run would (the stage-1 model, and with it
+the particle evidence, does not depend on PLM).  It prints, per cell, the evidence and the
+forced-on minus forced-off PSNR on the test views, then derives:
+
+* the haze rule (``auto_dark_threshold``, ``auto_depth_corr``): a cell needs CSM when the
+  best run with CSM beats the best without by >= :data:`MIN_GAIN_DB`;
+* the particle thresholds, one pair for the cells the haze rule declares hazy and one for
+  the rest: a cell needs PLM when, with CSM as the haze rule decides, PLM on beats PLM off
+  by >= :data:`MIN_GAIN_DB`.
+
+Rule (each decision): every cell that needs the component is declared; among the rules
+that do, the one with the fewest declarations on cells that do not need it.  The current
+defaults are kept when they are among those; otherwise each threshold sits half-way between
+the lowest value a needed cell shows and the next lower value seen.  A cell "needs" a
+component by what it gains, whatever the synthesizer put in it (PLM may gain on a hazy
+scene without particles).
+
+``--checks`` also trains, with CSM as the current haze rule decides and PLM on, without the
+top-hat cap (``residual_tophat=0``) and with the outlier test everywhere
+(``residual_outlier_scope=all``), and prints what each default is worth on the validation
+cells.  ``--report`` trains the same four variants on the benchmark's own cells (seed 0,
+tiny, seven settings), applies the current defaults to their evidence and prints where
+``auto``'s choice is >= :data:`MIN_GAIN_DB` below the best variant: a report, never an
+input to the thresholds.
+
+Each run's figures are kept as JSON under ``--cache`` (a rerun trains only what is missing).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import multiprocessing
+import sys
+import tempfile
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from benchmark.restore_thresholds import SCENES, prepare
+
+#: A component is needed where forcing it on gains at least this much test PSNR (dB).
+MIN_GAIN_DB = 0.3
+METHOD = "nimbus"
+TRAIN_SEED = 0
+#: The setting name of a scene's clean views (``ROOT/scenes/<scene>-<size>``).
+CLEAN = "clean"
+
+# Decisions forced through auto's own thresholds: met by any evidence, or by none.
+_HAZE = {True: {"auto_dark_threshold": "0"}, False: {"auto_dark_threshold": "1", "auto_depth_corr": "1"}}
+_PARTICLES = {
+    True: {"auto_particle_threshold": "-1", "auto_particle_energy": "0",
+           "auto_particle_threshold_haze": "-1", "auto_particle_energy_haze": "0"},
+    False: {"auto_particle_threshold": "1", "auto_particle_energy": "1e9",
+            "auto_particle_threshold_haze": "1", "auto_particle_energy_haze": "1e9"},
+}
+#: The four variants, by which components they force on: name -> (csm, plm).
+VARIANTS = {"csm+plm": (True, True), "csm": (True, False), "plm": (False, True), "none": (False, False)}
+#: The ``--checks`` runs (PLM on, CSM by the current haze rule): name -> extra overrides.
+CHECKS = {"tophat-off": {"residual_tophat": "0"}, "scope-all": {"residual_outlier_scope": "all"}}
+
+
+def variant_overrides(csm: bool, plm: bool, extra: dict | None = None) -> dict[str, str]:
+    """``--set`` overrides that make ``auto`` decide CSM and PLM as given (and skip the decomposition strips)."""
+    return {**_HAZE[csm], **_PARTICLES[plm], "write_decomposition": "false", **(extra or {})}
+
+
+def cell_folders(root: Path, sizes: list[str]) -> list[tuple[str, str, Path]]:
+    """``(scene-size, setting, folder)`` of every validation cell: each scene's clean views and seven settings."""
+    out = []
+    for data in prepare(root, sizes):
+        out.append((data.name, CLEAN, root / "scenes" / data.name))
+        out += [(data.name, s.name, s) for s in sorted(data.iterdir()) if (s / "manifest.json").is_file()]
+    return out
+
+
+def run_one(job: dict) -> dict:
+    """Train and score one variant of one cell (``job``: folder, overrides, preset, threads, out); cached JSON."""
+    import torch
+
+    from benchmark.cell import make_config, score_run, train_method
+    from nimbus.data.io import load_scene
+    from nimbus.methods.registry import get_method
+    from nimbus.utils.fs import atomic_write_json
+
+    out = Path(job["out"])
+    if out.is_file():
+        return json.loads(out.read_text())
+    if job["threads"]:
+        torch.set_num_threads(job["threads"])
+    folder = Path(job["folder"])
+    config = make_config(get_method(METHOD), job["preset"], job["overrides"])
+    with tempfile.TemporaryDirectory(prefix="auto_thresholds_") as tmp:
+        run = Path(tmp) / "run"
+        results, _ = train_method(METHOD, load_scene(folder), config, run, seed=TRAIN_SEED,
+                                  scene_path=str(folder), progress=False)
+        score = score_run(run, folder, results, ssim_protocol="3dgs", lpips_net=None, device=None)
+    nim = results["nimbus"]
+    rec = {"folder": str(folder), "overrides": job["overrides"], "psnr": score["mean"]["psnr"],
+           "ssim": score["mean"]["ssim"], "components": results["components"], "haze": nim["haze_evidence"],
+           "particles": nim["particle_evidence"], "train_time_s": results.get("train_time_s")}
+    atomic_write_json(out, rec)
+    print(f"{out.stem}: {rec['psnr']:.2f} dB, {sorted(rec['components'])}", file=sys.stderr, flush=True)
+    return rec
+
+
+def _digest(preset: str, overrides: dict[str, str]) -> str:
+    """A run's cache key: its config, but for the ``auto_*`` defaults (each run forces its decisions)."""
+    from benchmark.cell import make_config
+    from nimbus.methods.registry import get_method
+
+    config = dataclasses.asdict(make_config(get_method(METHOD), preset, overrides))
+    fields = {k: v for k, v in config.items() if not k.startswith("auto_")}
+    return hashlib.sha256(json.dumps([fields, overrides], sort_keys=True, default=str).encode()).hexdigest()[:8]
+
+
+def train_all(jobs: list[tuple[tuple[str, str, Path], str, dict[str, str]]], cache: Path, preset: str,
+              workers: int, threads: int | None) -> dict[tuple[str, str, str], dict]:
+    """``{(scene-size, setting, run name): record}``; ``jobs``: ``((scene-size, setting, folder), name, overrides)``."""
+    keys, todo = [], []
+    for (data, setting, folder), name, overrides in jobs:
+        keys.append((data, setting, name))
+        todo.append({"folder": str(folder), "overrides": overrides, "preset": preset, "threads": threads,
+                     "out": str(cache / f"{data}_{setting}_{name}_{preset}_{_digest(preset, overrides)}.json")})
+    if workers > 1:  # spawned: the parent has torch's thread pools up (it rendered the scenes)
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            recs = list(pool.map(run_one, todo))
+    else:
+        recs = [run_one(job) for job in todo]
+    for key, job, rec in zip(keys, todo, recs):
+        csm, plm = VARIANTS.get(key[2], (None, None))
+        comps = set(rec["components"])
+        if csm is not None and ("csm" in comps, "plm" in comps) != (csm, plm):
+            raise RuntimeError(f"{job['out']}: ran with {sorted(comps)}, not the forced variant {key[2]}")
+    return dict(zip(keys, recs))
+
+
+@dataclasses.dataclass
+class Cell:
+    """One scene and setting's evidence and gains."""
+
+    data: str
+    setting: str
+    psnr: dict[str, float]
+    dark_median: float
+    dark_depth_corr: float
+    #: Particle evidence (asymmetry, energy) with CSM on / off.
+    particles: dict[bool, tuple[float, float]]
+
+    @property
+    def complete(self) -> bool:
+        """All four variants ran (``--quick`` runs only the PLM pair at the current haze decision)."""
+        return len(self.psnr) == len(VARIANTS)
+
+    @property
+    def csm_gain(self) -> float:
+        p = self.psnr
+        return max(p["csm+plm"], p["csm"]) - max(p["plm"], p["none"])
+
+    def plm_gain(self, hazy: bool) -> float:
+        p = self.psnr
+        return p["csm+plm"] - p["csm"] if hazy else p["plm"] - p["none"]
+
+    def best(self) -> tuple[str, float]:
+        name = max(self.psnr, key=self.psnr.get)
+        return name, self.psnr[name]
+
+
+def gather(cells: list[tuple[str, str, Path]], recs: dict) -> list[Cell]:
+    """The :class:`Cell` of each scene and setting from the variants that ran."""
+    out = []
+    for data, setting, _ in cells:
+        r = {v: recs[(data, setting, v)] for v in VARIANTS if (data, setting, v) in recs}
+        ev = {csm: (r[name]["particles"]["asymmetry"], r[name]["particles"]["energy"])
+              for csm, name in ((True, "csm+plm"), (False, "plm")) if name in r}
+        haze = next(iter(r.values()))["haze"]
+        out.append(Cell(data, setting, {v: x["psnr"] for v, x in r.items()}, haze["dark_median"],
+                        haze["dark_depth_corr"], ev))
+    return out
+
+
+def current_haze(folder: Path, preset: str) -> bool:
+    """The haze decision of the current defaults for a scene folder (as the ``nimbus`` run will make it)."""
+    import torch
+
+    from benchmark.cell import make_config
+    from nimbus.data.io import load_scene
+    from nimbus.methods.registry import get_method
+    from nimbus.nimbusgs.auto import haze_evidence
+
+    cfg = make_config(get_method(METHOD), preset, {})
+    scene = load_scene(folder)
+    views = scene.train_views
+    # Depth ranks and dark channels do not change with the training frame's similarity transform.
+    return haze_evidence([torch.from_numpy(v.load_image()) for v in views], [v.camera for v in views],
+                         scene.points, cfg.dcp_patch, cfg.auto_dark_threshold, cfg.auto_depth_corr).present
+
+
+def variant_jobs(cells: list[tuple[str, str, Path]], preset: str, quick: bool) -> list:
+    """The four variants of each cell (``quick``: only the PLM pair at the current haze decision), the PLM pairs
+    first, so a run cut short has the particle decision's evidence and gains for every cell."""
+    pairs, rest = [], []
+    for cell in cells:
+        hazy = current_haze(cell[2], preset)
+        for name, (csm, plm) in VARIANTS.items():
+            (pairs if csm == hazy else rest).append((cell, name, variant_overrides(csm, plm)))
+    return pairs if quick else pairs + rest
+
+
+def _cuts(values, lo: float, hi: float) -> list[float]:
+    """Candidate thresholds in [lo, hi], highest first: below every value, half-way between neighbours, above all."""
+    v = np.unique(np.asarray(values, np.float64))
+    cuts = np.clip([v[0] - 1, *((v[:-1] + v[1:]) / 2), v[-1] + 1], lo, hi)
+    return sorted({float(x) for x in cuts}, reverse=True)
+
+
+def _round(x: float, keep) -> float:
+    """``x`` to the fewest significant digits (2 to 6) for which ``keep(rounded)`` still holds."""
+    for digits in range(2, 7):
+        r = float(f"{x:.{digits}g}")
+        if keep(r):
+            return r
+    return x
+
+
+def choose(needed: np.ndarray, declare, candidates: list[tuple], current: tuple) -> tuple[tuple, int, bool]:
+    """The rule of the module docstring: ``(thresholds, false declarations, current kept)``.
+
+    ``declare(thresholds)`` gives the declared cells (bool array); ``candidates`` are tried in
+    order of preference (the first of equally good ones wins).
+    """
+    def false_count(t):
+        d = declare(t)
+        return None if (needed & ~d).any() else int((d & ~needed).sum())
+
+    scored = [(false_count(t), t) for t in candidates]
+    feasible = [(f, t) for f, t in scored if f is not None]
+    best = min(f for f, _ in feasible)
+    if false_count(current) == best:
+        return current, best, True
+    t = next(t for f, t in feasible if f == best)
+    same = declare(t)
+    rounded = tuple(_round(x, lambda r, i=i: (declare(t[:i] + (r,) + t[i + 1:]) == same).all())
+                    for i, x in enumerate(t))
+    return (rounded if (declare(rounded) == same).all() else t), best, False
+
+
+def derive_haze(cells: list[Cell], current: tuple[float, float]) -> tuple[tuple, int, bool]:
+    from nimbus.nimbusgs.auto import haze_present
+
+    if not all(c.complete for c in cells):  # no CSM gains without both CSM states
+        return current, -1, True
+
+    needed = np.array([c.csm_gain >= MIN_GAIN_DB for c in cells])
+    dm = np.array([c.dark_median for c in cells])
+    corr = np.array([c.dark_depth_corr for c in cells])
+
+    def declare(t):
+        return np.array([haze_present(a, b, *t) for a, b in zip(dm, corr)])
+
+    # Highest thresholds first: of equally good rules, the one declaring haze least readily.  The dark
+    # threshold's half also counts (thin veil with a depth correlation).
+    dark_cuts = sorted({*_cuts(dm, 0, 1), *(min(2 * x, 1.0) for x in _cuts(dm, 0, 1))}, reverse=True)
+    return choose(needed, declare, [(d, c) for d in dark_cuts for c in _cuts(corr, -1, 1)], current)
+
+
+def derive_particles(cells: list[Cell], hazy: np.ndarray, group: bool,
+                     current: tuple[float, float]) -> tuple[tuple, int, bool, np.ndarray]:
+    sub = [c for c, h in zip(cells, hazy) if h == group]
+    needed = np.array([c.plm_gain(group) >= MIN_GAIN_DB for c in sub])
+    asym = np.array([c.particles[group][0] for c in sub])
+    energy = np.array([c.particles[group][1] for c in sub])
+
+    def declare(t):
+        return (asym >= t[0]) & (energy >= t[1])
+
+    cands = [(a, e) for a in _cuts(asym, -1, 1) for e in _cuts(energy, 0, np.inf)]
+    t, false, kept = choose(needed, declare, cands, current)
+    return t, false, kept, declare(t)
+
+
+def _cell_table(cells: list[Cell], hazy: np.ndarray) -> list[str]:
+    lines = [f"{'cell':<24} {'dark':>6} {'corr':>6} {'csm dB':>7} {'asym':>6} {'energy':>8} {'plm dB':>7}  "
+             "PSNR csm+plm / csm / plm / none"]
+    for c, h in zip(cells, hazy):
+        a, e = c.particles[bool(h)]
+        p = " / ".join(f"{c.psnr[v]:.2f}" if v in c.psnr else "-" for v in VARIANTS)
+        csm = f"{c.csm_gain:+7.2f}" if c.complete else f"{'-':>7}"
+        lines.append(f"{c.data + ' ' + c.setting:<24} {c.dark_median:6.3f} {c.dark_depth_corr:6.2f} "
+                     f"{csm} {a:6.3f} {e:8.5f} {c.plm_gain(bool(h)):+7.2f}  {p}")
+    return lines
+
+
+def report_derivation(cells: list[Cell]) -> None:
+    from nimbus.nimbusgs.auto import haze_present
+    from nimbus.nimbusgs.config import NimbusConfig as C
+
+    (dark, corr), false, kept = derive_haze(cells, (C.auto_dark_threshold, C.auto_depth_corr))
+    hazy = np.array([haze_present(c.dark_median, c.dark_depth_corr, dark, corr) for c in cells])
+    note = (f"{false} cells declared hazy that gain < {MIN_GAIN_DB} dB from CSM" if false >= 0
+            else "not derived: --quick ran one CSM state per cell")
+    print(f"haze rule: auto_dark_threshold={dark} auto_depth_corr={corr} ({'current kept; ' if kept else ''}{note})")
+    print("\n".join(_cell_table(cells, hazy)))
+    for group, fields in ((False, ("auto_particle_threshold", "auto_particle_energy")),
+                          (True, ("auto_particle_threshold_haze", "auto_particle_energy_haze"))):
+        sub = [c for c, h in zip(cells, hazy) if h == group]
+        if not sub:
+            print(f"{'hazy' if group else 'haze-free'} cells: none")
+            continue
+        current = (getattr(C, fields[0]), getattr(C, fields[1]))
+        (a, e), false, kept, declared = derive_particles(cells, hazy, group, current)
+        needed = [c for c in sub if c.plm_gain(group) >= MIN_GAIN_DB]
+        without = [f"{c.data} {c.setting}" for c in needed if not {"R", "S"} & set(c.setting.split("+"))]
+        print(f"{'hazy' if group else 'haze-free'} cells ({len(sub)}): {len(needed)} gain >= {MIN_GAIN_DB} dB "
+              f"from PLM ({len(without)} without particles{': ' + ', '.join(without) if without else ''}); "
+              f"{fields[0]}={a} {fields[1]}={e} ({'current kept; ' if kept else ''}{int(declared.sum())} declared, "
+              f"{false} of them gain less)")
+
+
+def report_checks(cells: list[Cell], recs: dict) -> None:
+    """What the top-hat cap and the outlier scope are worth (default minus the ``--checks`` run), per cell."""
+    for name in CHECKS:
+        rows = []
+        for c in cells:
+            rec = recs[(c.data, c.setting, name)]
+            base = c.psnr["csm+plm" if "csm" in rec["components"] else "plm"]
+            rows.append((f"{c.data} {c.setting}", base - rec["psnr"]))
+        d = np.array([x for _, x in rows])
+        print(f"default minus {name}: mean {d.mean():+.3f} dB, min {d.min():+.3f}, max {d.max():+.3f}, "
+              f"{int((d > 0).sum())} of {len(d)} cells better with the default")
+        print("  " + ", ".join(f"{n} {x:+.2f}" for n, x in rows))
+
+
+def report_auto(cells: list[Cell]) -> None:
+    """``auto``'s choice under the current defaults against the best forced variant, per cell."""
+    from nimbus.nimbusgs.auto import haze_present, particle_thresholds
+    from nimbus.nimbusgs.config import NimbusConfig
+
+    cfg = NimbusConfig()
+    short = 0
+    for c in cells:
+        hazy = haze_present(c.dark_median, c.dark_depth_corr, cfg.auto_dark_threshold, cfg.auto_depth_corr)
+        if hazy not in c.particles:
+            print(f"{c.data + ' ' + c.setting:<24} auto's CSM state ({hazy}) not run")
+            continue
+        a, e = c.particles[hazy]
+        ta, te = particle_thresholds(cfg, hazy)
+        choice = {on: name for name, on in VARIANTS.items()}[(hazy, bool(a >= ta and e >= te))]
+        best, top = c.best()
+        gap = top - c.psnr[choice]
+        short += gap >= MIN_GAIN_DB
+        flag = "  <-- auto >= %.1f dB below the best" % MIN_GAIN_DB if gap >= MIN_GAIN_DB else ""
+        print(f"{c.data + ' ' + c.setting:<24} auto {choice:<8} {c.psnr[choice]:6.2f}  best {best:<8} {top:6.2f}"
+              f"  gap {gap:.2f}{flag}")
+    print(f"{short} of {len(cells)} cells with auto >= {MIN_GAIN_DB} dB below the best variant"
+          + ("" if all(c.complete for c in cells) else " that ran (--quick: the PLM pair only)"))
+
+
+def report_cells(root: Path, sizes: list[str]) -> list[tuple[str, str, Path]]:
+    """The benchmark's own cells (seed 0 data under ``root``, prepared as the grid does), seven settings."""
+    from benchmark.cell import Cell as GridCell
+    from benchmark.cell import data_dir, prepare_data
+    from weather_synth.settings import ALL_SETTING_NAMES
+
+    grid = [GridCell(s, w, METHOD, "tiny", 0, size) for size in sizes for s in SCENES for w in ALL_SETTING_NAMES]
+    prepare_data(root, grid, progress=False)
+    return [(c.data_name, c.weather, data_dir(root, c)) for c in grid]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmark.auto_thresholds", description=__doc__.split("\n")[0])
+    parser.add_argument("--root", default=None, help="where the scenes are (made): default auto-validation, or "
+                        "auto-report with --report")
+    parser.add_argument("--sizes", default="tiny", help="built-in scene sizes, comma-separated")
+    parser.add_argument("--preset", default="tiny", help="training preset")
+    parser.add_argument("--cache", default=None, help="per-run JSON figures (default ROOT/runs)")
+    parser.add_argument("--jobs", type=int, default=1, help="runs trained at once")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads per run")
+    parser.add_argument("--checks", action="store_true", help="also what the top-hat cap and outlier scope are worth")
+    parser.add_argument("--quick", action="store_true", help="only the PLM pair at the current haze decision "
+                        "(no CSM gains: the haze rule is not derived)")
+    parser.add_argument("--report", action="store_true", help="auto on the benchmark's seed-0 cells (report only)")
+    args = parser.parse_args(argv)
+    root = Path(args.root or ("auto-report" if args.report else "auto-validation"))
+    cache = Path(args.cache) if args.cache else root / "runs"
+    cache.mkdir(parents=True, exist_ok=True)
+    sizes = [s.strip() for s in args.sizes.split(",") if s.strip()]
+    cells = report_cells(root, sizes) if args.report else cell_folders(root, sizes)
+    recs = train_all(variant_jobs(cells, args.preset, args.quick), cache, args.preset, args.jobs, args.threads)
+    gathered = gather(cells, recs)
+    if args.report:
+        report_auto(gathered)
+        return 0
+    report_derivation(gathered)
+    if args.checks:
+        jobs = []
+        for cell in cells:  # PLM on, CSM as the current haze rule decides
+            if cell[1] == CLEAN:
+                continue
+            hazy = current_haze(cell[2], args.preset)
+            jobs += [(cell, name, variant_overrides(hazy, True, extra)) for name, extra in CHECKS.items()]
+        checks = train_all(jobs, cache, args.preset, args.jobs, args.threads)
+        report_checks([c for c in gathered if c.setting != CLEAN], checks)
+    return 0
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,64 @@
+"""The rule ``python -m benchmark.auto_thresholds`` derives ``auto``'s thresholds by, on made-up cells (no training)."""
+
+import numpy as np
+
+from benchmark.auto_thresholds import VARIANTS, Cell, choose, derive_haze, derive_particles, variant_overrides
+from nimbus.config_set import apply_overrides
+from nimbus.nimbusgs.auto import haze_present, particle_thresholds
+from nimbus.nimbusgs.config import preset
+
+
+def cell(name, plm_gain, asym, energy, dark=0.05, corr=0.0, csm_gain=-1.0):
+    """A cell whose PLM gains ``plm_gain`` dB (CSM on or off) and CSM ``csm_gain``; evidence alike either way."""
+    base = 20.0
+    psnr = {"none": base, "plm": base + plm_gain, "csm": base + csm_gain, "csm+plm": base + csm_gain + plm_gain}
+    return Cell("scene-tiny", name, psnr, dark, corr, {True: (asym, energy), False: (asym, energy)})
+
+
+def test_particle_rule_declares_every_needed_cell_with_fewest_false_declarations():
+    cells = [cell("R", 2.0, 0.30, 0.0010), cell("S", 0.4, 0.22, 0.0008), cell("a", 0.1, 0.25, 0.0002),
+             cell("b", -0.5, 0.10, 0.0020), cell("c", 0.0, 0.35, 0.0030)]
+    hazy = np.zeros(len(cells), bool)
+    (a, e), false, kept, declared = derive_particles(cells, hazy, False, (0.5, 0.0005))
+    assert not kept and declared.tolist() == [True, True, False, False, True] and false == 1
+    # Half-way to the next lower value seen: asymmetry between 0.10 and 0.22, energy between 0.0002 and 0.0008.
+    assert a == 0.16 and e == 0.0005
+    # Thresholds that already do as well are kept.
+    assert derive_particles(cells, hazy, False, (0.2, 0.0006))[:3] == ((0.2, 0.0006), 1, True)
+
+
+def test_particle_rule_uses_only_its_group():
+    cells = [cell("H+R", 1.0, 0.12, 0.0003), cell("R", 1.0, 0.30, 0.0010), cell("b", 0.0, 0.20, 0.0009)]
+    hazy = np.array([True, False, False])
+    (a, e), _, _, declared = derive_particles(cells, hazy, True, (0.35, 0.0005))
+    assert declared.tolist() == [True] and a <= 0.12 and e <= 0.0003
+    (a, e), false, _, declared = derive_particles(cells, hazy, False, (0.35, 0.0005))
+    assert declared.tolist() == [True, False] and false == 0 and 0.20 < a <= 0.30
+
+
+def test_haze_rule_keeps_current_thresholds_when_they_are_as_good():
+    cells = [cell("H", 0.0, 0, 0, dark=0.30, csm_gain=3.0), cell("R", 0.0, 0, 0, dark=0.05, csm_gain=-2.0),
+             cell("thin", 0.0, 0, 0, dark=0.12, corr=0.8, csm_gain=0.5)]
+    assert derive_haze(cells, (0.2, 0.5)) == ((0.2, 0.5), 0, True)
+    (d, c), false, kept = derive_haze(cells, (0.4, 0.5))  # misses H and the thin veil
+    assert not kept and false == 0
+    assert [haze_present(x.dark_median, x.dark_depth_corr, d, c) for x in cells] == [True, False, True]
+
+
+def test_choose_refuses_rules_that_miss_a_needed_cell():
+    needed = np.array([True, False, False])
+    values = np.array([0.1, 0.5, 0.9])
+    t, false, kept = choose(needed, lambda t: values >= t[0], [(0.7,), (0.3,), (0.0,)], (0.7,))
+    assert t == (0.0,) and false == 2 and not kept
+
+
+def test_variants_force_auto_one_way_whatever_the_evidence():
+    cfg = preset("tiny")
+    for csm, plm in VARIANTS.values():
+        c = apply_overrides(cfg, variant_overrides(csm, plm))
+        for dark, corr in ((0.0, 0.0), (0.99, 0.99)):
+            assert haze_present(dark, corr, c.auto_dark_threshold, c.auto_depth_corr) == csm
+        for hazy in (False, True):
+            a, e = particle_thresholds(c, hazy)
+            for asym, energy in ((-0.99, 0.0), (0.99, 1.0)):
+                assert (asym >= a and energy >= e) == plm
