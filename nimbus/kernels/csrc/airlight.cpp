@@ -38,7 +38,7 @@
 #include <tuple>
 #include <vector>
 
-#include "common.h"
+#include "medium.h"
 
 namespace nimbus_airlight {
 namespace {

@@ -1,7 +1,7 @@
 // What the compiled kernels share: the per-ISA clone and always-inline macros, kLanes-wide
 // vector types (GCC/Clang vector extensions) with their small helpers, and the float32
-// Cephes exp polynomial (with sigmoid on it).  Included by composite.cpp (the rasterizer extension),
-// march.cpp and airlight.cpp (NimbusGS's extension); each extension is built by nimbus/kernels/extension.py
+// Cephes exp polynomial.  Included by composite.cpp (the rasterizer extension) and
+// march.cpp (NimbusGS's march extension); each extension is built by nimbus/kernels/extension.py
 // with the same flags (no -ffast-math, no FMA contraction), so the operations below run
 // exactly as written wherever they are inlined.
 
@@ -23,13 +23,6 @@
 #define NIMBUS_INLINE inline __attribute__((always_inline))
 
 namespace nimbus_simd {
-#ifdef NIMBUS_HAS_AVX2_CLONE
-// Whether this CPU runs the AVX2 clones (asked once).
-inline bool cpu_has_avx2() {
-  static const bool yes = (__builtin_cpu_init(), __builtin_cpu_supports("avx2"));
-  return yes;
-}
-#endif
 // Internal linkage, as when each .cpp defined its own copies: GCC then compiles the kernels to
 // the same instructions as before the header existed (with external linkage it schedules and
 // allocates registers differently in the tile clones).
@@ -123,17 +116,6 @@ NIMBUS_INLINE Vec<float> exp_cephes(Vec<float> x) {
   Vec<float> scale;
   std::memcpy(&scale, &bits, sizeof(scale));
   return p * scale;
-}
-
-// exp(x) for x <= 0: exp_cephes with x clamped at -87 so 2^n stays a normal number (exp(-87) ~ 1.6e-38
-// is 0 next to any value that matters where this is used: softplus, sigmoid).
-NIMBUS_INLINE Vec<float> exp_nonpositive(Vec<float> x) { return exp_cephes(select(x < -87.0f, splat(-87.0f), x)); }
-
-// sigmoid(x) = 1 / (1 + e) for x >= 0, e / (1 + e) below, with e = exp(-|x|) (never overflows).
-NIMBUS_INLINE Vec<float> sigmoid(Vec<float> v) {
-  const Vec<float> a = select(v < 0.0f, -v, v);
-  const Vec<float> e = exp_nonpositive(-a);
-  return select(v >= 0.0f, splat(1.0f), e) / (e + 1.0f);
 }
 
 }  // namespace

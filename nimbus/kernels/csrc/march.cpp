@@ -41,7 +41,7 @@
 #include <cstring>
 #include <memory>
 
-#include "common.h"
+#include "medium.h"
 
 namespace nimbus_march {
 namespace {
