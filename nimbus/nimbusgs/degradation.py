@@ -28,6 +28,7 @@ from nimbus.nimbusgs.particulate import (ResidualStore, ViewConsistency, ViewGeo
 from nimbus.nimbusgs.scattering import (Box, ExtinctionGrid, UniformExtinction, ViewRays, camera_rays,
                                         density_scale_for, gaussian_extinction_map, march, march_interval,
                                         ray_box_interval, surface_in_box)
+from nimbus.train.params import adam
 
 #: Bounds of the data-driven initial transmission (ours): keeps the initial medium neither absent nor opaque.
 INIT_TRANSMISSION_RANGE = (0.2, 0.95)
@@ -93,10 +94,7 @@ class Medium:
         self.airlight = make_airlight(c.airlight, airlight, c.airlight_hidden, c.airlight_sh_degree,
                                       c.airlight_input, compiled=march_backend(c) != "torch").to(device)
         groups.append({"params": list(self.airlight.parameters()), "lr": c.lr_airlight, "name": "airlight"})
-        # Fused on the CPU, as the Gaussians' Adam (nimbus.train.params): one pass per tensor instead of
-        # about seven; the update equals the default's up to float rounding.
-        fused = all(p.device.type == "cpu" for g in groups for p in g["params"])
-        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=c.adam_eps, fused=fused or None)
+        self.optimizer = adam(groups, c.adam_eps)  # fused on the CPU, as the Gaussians' Adam
         self.initial_transmission = transmission
         self.initial_density_scale = scale
 

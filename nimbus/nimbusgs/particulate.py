@@ -296,10 +296,9 @@ class ViewConsistency:
         others = torch.tensor(self.others, device=surfaces.device)[views]  # [B, K]
         b, k = others.shape
         flat = others.reshape(-1)
-        # Each neighbour's rigid transform, one coordinate at a time ([B, K, H W] each), as _project.
-        R, t = s["R"][others][..., None], s["t"][others][..., None]  # [B, K, 3, 3, 1], [B, K, 3, 1]
-        wx, wy, wz = (world[:, None, :, c] for c in range(3))
-        px, py, z = ((wx * R[:, :, c, 0] + wy * R[:, :, c, 1] + wz * R[:, :, c, 2]) + t[:, :, c] for c in range(3))
+        # Each neighbour's rigid transform ([B, K, H W] per coordinate), as _project.
+        p = _rotate(world[:, None], s["R"][others].transpose(-1, -2)[:, :, None]) + s["t"][others][:, :, None]
+        px, py, z = p.unbind(-1)
         zs = z.clamp_min(1e-9)
         fx, fy, cx, cy = s["K"][others][..., None].unbind(2)
         u = fx * px / zs + cx

@@ -6,6 +6,17 @@ import torch
 from torch import Tensor
 
 
+def adam(groups: list[dict], eps: float) -> torch.optim.Adam:
+    """Adam over parameter ``groups`` (each with its own ``lr``), fused when every parameter is on the CPU.
+
+    On the CPU torch's fused Adam makes one pass per tensor instead of about seven (~6x faster with
+    200k Gaussians); its update equals the default's up to float rounding (1 ulp).  Elsewhere torch
+    picks its default implementation.
+    """
+    fused = all(p.device.type == "cpu" for g in groups for p in g["params"])
+    return torch.optim.Adam(groups, lr=0.0, eps=eps, fused=fused or None)
+
+
 class GaussianParams:
     """The trainable Gaussian tensors and their Adam optimiser, edited together.
 
@@ -17,12 +28,7 @@ class GaussianParams:
 
     def __init__(self, tensors: dict[str, Tensor], lrs: dict[str, float], eps: float) -> None:
         self.tensors = {k: v.detach().clone().requires_grad_(True) for k, v in tensors.items()}
-        # On the CPU torch's fused Adam makes one pass per tensor instead of about seven (~6x faster
-        # with 200k Gaussians); its update equals the default's up to float rounding (1 ulp).
-        fused = all(t.device.type == "cpu" for t in self.tensors.values())
-        self.optimizer = torch.optim.Adam(
-            [{"params": [self.tensors[k]], "lr": lrs[k], "name": k} for k in self.tensors], lr=0.0, eps=eps,
-            fused=fused or None)
+        self.optimizer = adam([{"params": [self.tensors[k]], "lr": lrs[k], "name": k} for k in self.tensors], eps)
 
     def __len__(self) -> int:
         return self.tensors["means"].shape[0]
