@@ -51,6 +51,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmark.restore_thresholds import SCENES, prepare
+from nimbus.cli_util import run_cli
 
 #: A component is needed where forcing it on gains at least this much test PSNR (dB).
 MIN_GAIN_DB = 0.3
@@ -395,10 +396,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--report", action="store_true", help="auto on the benchmark's seed-0 cells (report only)")
     args = parser.parse_args(argv)
     root = Path(args.root or ("auto-report" if args.report else "auto-validation"))
+    sizes = [s.strip() for s in args.sizes.split(",") if s.strip()]
+    from nimbus.data.builtin import get_size
+
+    for size in sizes:  # an unknown size is one error line, before anything is written
+        get_size(size)
+    cells = report_cells(root, sizes) if args.report else cell_folders(root, sizes)
     cache = Path(args.cache) if args.cache else root / "runs"
     cache.mkdir(parents=True, exist_ok=True)
-    sizes = [s.strip() for s in args.sizes.split(",") if s.strip()]
-    cells = report_cells(root, sizes) if args.report else cell_folders(root, sizes)
     recs = train_all(variant_jobs(cells, args.preset, args.quick), cache, args.preset, args.jobs, args.threads)
     gathered = gather(cells, recs)
     if args.report:
@@ -417,4 +422,4 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_cli(main))

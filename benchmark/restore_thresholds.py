@@ -16,19 +16,25 @@ from pathlib import Path
 
 import numpy as np
 
+from nimbus.cli_util import run_cli
+
 #: Scene and synthesis seed of the validation data (the benchmark's is 0).
 VALIDATION_SEED = 1
 SCENES = ("garden", "street", "tabletop")
 
 
 def prepare(root: Path, sizes: list[str]) -> list[Path]:
-    """The degraded scene folders (``root/data/<scene>-<size>``), rendered and synthesised where missing."""
-    from nimbus.data.builtin import write_builtin
+    """The degraded scene folders (``root/data/<scene>-<size>``), rendered and synthesised where missing.
+
+    An unknown size raises NimbusError before anything is written."""
+    from nimbus.data.builtin import get_size, write_builtin
     from nimbus.data.io import load_scene
     from weather_synth.config import protocol_config
     from weather_synth.dataset import degrade_scene
     from weather_synth.settings import ALL_SETTING_NAMES, parse_setting
 
+    for size in sizes:
+        get_size(size)
     out = []
     for size in sizes:
         for scene in SCENES:
@@ -92,4 +98,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_cli(main))

@@ -1,6 +1,7 @@
 """The rule ``python -m benchmark.auto_thresholds`` derives ``auto``'s thresholds by, on made-up cells (no training)."""
 
 import numpy as np
+import pytest
 
 from benchmark.auto_thresholds import VARIANTS, Cell, choose, derive_haze, derive_particles, variant_overrides
 from nimbus.config_set import apply_overrides
@@ -62,3 +63,17 @@ def test_variants_force_auto_one_way_whatever_the_evidence():
             a, e = particle_thresholds(c, hazy)
             for asym, energy in ((-0.99, 0.0), (0.99, 1.0)):
                 assert (asym >= a and energy >= e) == plm
+
+
+@pytest.mark.parametrize("argv", [["--sizes", "huge"], ["--report", "--sizes", "huge"]])
+def test_an_unknown_size_is_one_line_and_writes_nothing(argv, tmp_path, monkeypatch, capsys):
+    from benchmark import auto_thresholds, restore_thresholds
+    from nimbus.cli_util import run_cli
+
+    monkeypatch.chdir(tmp_path)
+    for main in (auto_thresholds.main, restore_thresholds.main):
+        if main is restore_thresholds.main and "--report" in argv:
+            continue
+        assert run_cli(main, argv) == 2
+        assert "unknown scene size 'huge'" in capsys.readouterr().err
+        assert not list(tmp_path.iterdir())
