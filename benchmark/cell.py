@@ -14,7 +14,12 @@ Each cell trains its method on the degraded images and is scored with
 :mod:`benchmark.metrics` against the *clean* test views (``clean/``): the trainer's own
 PSNR compares with the degraded inputs, which is not the benchmark's question.  A cell
 trains into ``runs/<cell-id>.partial`` and is renamed into place before it is scored, so a
-killed run leaves no half-written run passing for a finished one; a rerun removes leftovers.
+killed run leaves no half-written run passing for a finished one.  A rerun continues an
+interrupted cell from the last checkpoint in its ``.partial`` folder when that folder is this
+very cell's (same method, seed, data and config; :func:`resumable_partial`) and the
+checkpoint was not cut in the middle of a step; anything else it leaves is removed and the
+cell trains from the start.  A resumed cell's record says so (``resumed_from_iteration``); its
+training time includes the part before the interruption (the checkpoint carries it).
 
 :func:`run_cell` is the one way a cell runs, whoever asks (:mod:`benchmark.grid` for
 ``nimbus-bench run`` and ``tradeoff``).  The stability report trains on inputs of its own
@@ -254,6 +259,40 @@ def clear_run_dirs(root: Path, cell: Cell) -> tuple[Path, Path]:
     return final, partial
 
 
+def resumable_partial(partial: Path, cell: Cell, config, data: Path, device: str | None = None):
+    """A :class:`~nimbus.train.runner.Runner` continuing the interrupted attempt in ``partial``, or None.
+
+    Only a folder written for this very cell qualifies: its ``config.json`` names the cell's
+    method and seed, the data folder ``data`` and exactly ``config``; its checkpoint loads and
+    was not saved in the middle of a step (Ctrl-C inside a step: the resumed run could differ
+    from an uninterrupted one).  A periodic checkpoint (every ``checkpoint_interval`` steps) is
+    what a killed process leaves.  ``device`` is the torch device to continue on (None: the default).
+    The caller holds the cell's lock.
+    """
+    import torch
+
+    from nimbus.train.checkpoint import CHECKPOINT
+    from nimbus.train.run_folder import config_record, read_run_config
+    from nimbus.train.runner import Runner
+
+    if not (partial / CHECKPOINT).is_file():
+        return None
+    try:
+        saved = read_run_config(partial)
+    except NimbusError:
+        return None
+    same = (saved["method"] == cell.method and saved["seed"] == cell.seed and not saved["scene_load_args"]
+            and saved["scene"] == str(data.resolve())
+            and json.dumps(saved["config"], sort_keys=True) == json.dumps(config_record(config), sort_keys=True))
+    if not same:
+        return None
+    try:
+        runner = Runner.resume(partial, progress=False, device=torch.device(device) if device else None)
+    except NimbusError:
+        return None
+    return None if runner.resumed_mid_step else runner
+
+
 # --- training and scoring ------------------------------------------------------------------------
 def train_method(method_name: str, scene, config, out_dir: Path, *, seed: int, scene_path: str, progress: bool,
                  device: str | None = None,
@@ -424,7 +463,8 @@ def run_cell(cell: dict | Cell, root: str, options: CellOptions | None = None) -
         ``error``); ``psnr`` (dB) / ``ssim`` / ``lpips`` means against the clean test views
         and ``per_view`` values; ``ssim_protocol``, ``lpips_net``, ``notes``;
         ``psnr_vs_input`` / ``ssim_vs_input`` (the trainer's, against the degraded views);
-        ``train_time_s``, ``peak_memory_mb`` (of the process that trained), ``num_gaussians``,
+        ``train_time_s``, ``peak_memory_mb`` (of the process that trained; of its last attempt for a cell
+        resumed after an interruption, whose record has ``resumed_from_iteration``), ``num_gaussians``,
         ``num_params`` (+ ``num_params_source``), ``render_fps``, ``iterations``;
         ``config``, ``config_hash``; ``versions``; ``input_sha256`` (the degraded dataset's
         manifest), ``output_sha256`` (render name -> sha256); ``run_dir`` (relative to
@@ -484,10 +524,20 @@ def _train_cell(cell: Cell, root: Path, options: CellOptions) -> dict:
     if not (data / MANIFEST).is_file():
         raise NimbusError(f"{data} is missing; the grid runner prepares it before training (is ROOT shared "
                           "with the workers?)")
-    final, partial = clear_run_dirs(root, cell)
-    scene = load_scene(data)
-    results, model = train_method(cell.method, scene, config, partial, seed=cell.seed,
-                                  scene_path=str(data.resolve()), progress=False, device=options.device)
+    final = run_dir(root, cell)
+    partial = final.with_name(cell.cell_id + PARTIAL_SUFFIX)
+    resumed = resumable_partial(partial, cell, config, data, options.device)
+    if resumed is not None:
+        resumed_from = resumed.iteration
+        if final.exists():  # an earlier finished attempt's folder (--rerun): the resumed one replaces it
+            shutil.rmtree(final)
+        results, model = resumed.run(), resumed
+    else:
+        resumed_from = None
+        final, partial = clear_run_dirs(root, cell)
+        scene = load_scene(data)
+        results, model = train_method(cell.method, scene, config, partial, seed=cell.seed,
+                                      scene_path=str(data.resolve()), progress=False, device=options.device)
     num_params, source = _param_count(model, results, config)
     os.replace(partial, final)
     out = {
@@ -501,6 +551,8 @@ def _train_cell(cell: Cell, root: Path, options: CellOptions) -> dict:
     }
     if "components" in results:
         out["components"] = results["components"]
+    if resumed_from is not None:
+        out["resumed_from_iteration"] = resumed_from
     return out
 
 

@@ -6,6 +6,7 @@ so a cell costs well under a second plus its process start-up.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import warnings
@@ -38,6 +39,15 @@ def finished(tmp_path_factory):
     root = tmp_path_factory.mktemp("bench")
     outcome = run_grid(cells(), root, LocalExecutor(jobs=1), OPTIONS, progress=False, log=lambda s: None)
     return root, outcome
+
+
+def _original_step():
+    from nimbus.methods.gs3d import GaussianSplatting
+
+    return GaussianSplatting.train_iteration
+
+
+_ORIGINAL_STEP = _original_step()
 
 
 def copy_data(src, dst):
@@ -275,7 +285,86 @@ def test_crash_mid_cell_resumes_without_corrupt_records(finished, tmp_path, monk
     assert [r["cell_id"] for r in outcome.ran] == [cells()[1].cell_id] and outcome.skipped == [first.cell_id]
     recs = store.records()  # no warning now: the torn line was cut off before the append
     assert [r["status"] for r in recs] == ["ok", "ok"]
+    # Ctrl-C inside a step saved a half-done step: the cell was trained again from the start, not resumed
+    assert "resumed_from_iteration" not in recs[1]
     assert run_dir(root, cells()[1]).is_dir() and not list((root / "runs").glob("*.partial"))
+
+
+class _Killed(BaseException):
+    """A process killed between two steps (SIGKILL, a machine going away): nothing is saved on the way out."""
+
+
+def _kill_second_cell_at(monkeypatch, step: int):
+    """Make the second cell's training die before its step ``step``; returns the undo."""
+    from nimbus.methods.gs3d import GaussianSplatting
+    from nimbus.train.runner import Runner
+
+    original, original_train = GaussianSplatting.train_iteration, Runner.train
+    running = {}
+
+    def train(self):
+        running["out"] = self.out
+        return original_train(self)
+
+    def killed(self, it):
+        if running["out"].name.startswith(cells()[1].cell_id) and it == step:
+            raise _Killed
+        return original(self, it)
+
+    monkeypatch.setattr(Runner, "train", train)
+    monkeypatch.setattr(GaussianSplatting, "train_iteration", killed)
+
+
+def test_a_killed_cell_continues_from_its_last_checkpoint(finished, tmp_path, monkeypatch):
+    root = copy_data(finished[0], tmp_path)
+    grid_cells = build_cells(["garden"], ["H", "R"], ["3dgs"], ["tiny"], [0], "tiny", OVERRIDES)
+    # checkpoints every 2 steps; the second cell dies before step 4, after the checkpoint of step 2
+    monkeypatch.setattr(cell, "make_config", _with_checkpoints_every(2))
+    _kill_second_cell_at(monkeypatch, 4)
+    with pytest.raises(_Killed):
+        run_grid(grid_cells, root, InlineExecutor(), OPTIONS, progress=False, log=lambda s: None)
+    partial = root / "runs" / (grid_cells[1].cell_id + cell.PARTIAL_SUFFIX)
+    assert (partial / "checkpoint.pt").is_file()
+
+    from nimbus.methods.gs3d import GaussianSplatting
+    monkeypatch.setattr(GaussianSplatting, "train_iteration", _ORIGINAL_STEP)  # the kill undone, the config kept
+    outcome = run_grid(grid_cells, root, InlineExecutor(), OPTIONS, progress=False, log=lambda s: None)
+    [rec] = outcome.ran
+    assert rec["status"] == "ok" and rec["resumed_from_iteration"] == 2 and rec["iterations"] == 5
+    # the same figures as the cell trained without interruption (checkpointing does not change training)
+    uninterrupted = load_results(finished[0]).set_index("cell_id").loc[grid_cells[1].cell_id]
+    assert rec["psnr"] == pytest.approx(uninterrupted["psnr"], abs=1e-4)
+    assert rec["num_gaussians"] == uninterrupted["num_gaussians"]
+    assert run_dir(root, grid_cells[1]).is_dir() and not partial.exists()
+
+
+def test_a_partial_run_of_other_settings_is_not_resumed(finished, tmp_path, monkeypatch):
+    root = copy_data(finished[0], tmp_path)
+    grid_cells = build_cells(["garden"], ["H", "R"], ["3dgs"], ["tiny"], [0], "tiny", OVERRIDES)
+    monkeypatch.setattr(cell, "make_config", _with_checkpoints_every(2))
+    _kill_second_cell_at(monkeypatch, 4)
+    with pytest.raises(_Killed):
+        run_grid(grid_cells, root, InlineExecutor(), OPTIONS, progress=False, log=lambda s: None)
+    partial = root / "runs" / (grid_cells[1].cell_id + cell.PARTIAL_SUFFIX)
+    saved = json.loads((partial / "config.json").read_text())
+    saved["config"]["lr_opacity"] *= 2  # e.g. a Nimbus whose preset changed since the interrupted attempt
+    (partial / "config.json").write_text(json.dumps(saved))
+
+    from nimbus.methods.gs3d import GaussianSplatting
+    monkeypatch.setattr(GaussianSplatting, "train_iteration", _ORIGINAL_STEP)
+    outcome = run_grid(grid_cells, root, InlineExecutor(), OPTIONS, progress=False, log=lambda s: None)
+    [rec] = outcome.ran
+    assert rec["status"] == "ok" and "resumed_from_iteration" not in rec
+    run = run_dir(root, grid_cells[1])
+    assert json.loads((run / "config.json").read_text())["config"]["lr_opacity"] != saved["config"]["lr_opacity"]
+
+
+def _with_checkpoints_every(n: int):
+    original = cell.make_config
+
+    def make_config(method, preset, overrides):
+        return dataclasses.replace(original(method, preset, overrides), checkpoint_interval=n)
+    return make_config
 
 
 def test_failed_cell_is_recorded_and_retried(finished, tmp_path, monkeypatch):

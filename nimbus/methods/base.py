@@ -82,7 +82,7 @@ class Method(Protocol):
     def state_dict(self) -> dict:
         """Everything :meth:`load_state_dict` restores: tensors and plain values only
         (:func:`~nimbus.train.checkpoint.check_plain`), keys other than the runner's own
-        (``iteration``, ``train_time``, ``frame``, ``visible_steps``)."""
+        (``iteration``, ``train_time``, ``frame``, ``visible_steps``, ``mid_step``)."""
 
     def load_state_dict(self, state: dict) -> None:
         """Restore a :meth:`state_dict`; ``state["iteration"]`` is the step it was saved after.

@@ -119,6 +119,10 @@ class Runner:
         self.on_log = on_log
         self.iteration = 0
         self.train_time = 0.0
+        #: True while a training step runs: a checkpoint saved then (Ctrl-C) holds a half-done step.
+        self._in_step = False
+        #: Whether the checkpoint this runner was loaded from was saved in the middle of a step.
+        self.resumed_mid_step = False
         #: Training steps in which the view depended on the model (a run with none learned nothing).
         self.visible_steps = 0
         self.method = get_method(method_name).load()(self.scene, config, seed=self.seed, device=self.device,
@@ -203,6 +207,7 @@ class Runner:
                     raise NimbusError(f"every Gaussian was pruned by iteration {it}; lower prune_opacity or "
                                       "densify_grad_threshold (--set key=value), or check that the input views "
                                       "are not blank")
+                self._in_step = True
                 try:
                     step = self.method.train_iteration(it)
                 except TrainingDiverged as e:
@@ -213,6 +218,7 @@ class Runner:
                     raise NimbusError(f"non-finite gradients at iteration {it}{kept}. Lower the learning rates or "
                                       "check the inputs") from None
                 self.iteration = it
+                self._in_step = False
                 self.visible_steps += bool(step["visible"])
                 for kind, info in step["events"]:
                     self.event(kind, **info)
@@ -266,9 +272,10 @@ class Runner:
 
     # --- checkpoints ---------------------------------------------------------------------
     def state_dict(self) -> dict:
-        """The checkpoint: the runner's keys (iteration, train_time, frame, visible_steps) and the method's state_dict."""
+        """The checkpoint: the runner's keys (iteration, train_time, frame, visible_steps, mid_step: saved by an
+        interrupt inside a step) and the method's state_dict."""
         return {"iteration": self.iteration, "train_time": float(self.train_time), "frame": self.frame.as_list(),
-                "visible_steps": self.visible_steps, **self.method.state_dict()}
+                "visible_steps": self.visible_steps, "mid_step": self._in_step, **self.method.state_dict()}
 
     def _keep_last_good(self) -> str:
         """Save the last good state and say where (empty for a run without checkpoints: nothing was saved)."""
@@ -301,6 +308,7 @@ class Runner:
             self.train_time = float(state["train_time"])
             # Checkpoints written before the count existed: assume every step saw something.
             self.visible_steps = int(state.get("visible_steps", self.iteration))
+            self.resumed_mid_step = bool(state.get("mid_step", False))
         except (KeyError, TypeError, ValueError, IndexError, AttributeError, RuntimeError) as e:
             raise NimbusError(f"checkpoint {path} does not fit this run ({e.__class__.__name__}: {str(e)[:200]}); "
                               "it was written for other settings or by another Nimbus version. Start a new run "
