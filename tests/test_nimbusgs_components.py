@@ -13,7 +13,8 @@ from nimbus.nimbusgs.airlight import (ConstantAirlight, NetworkAirlight, SHAirli
                                       view_descriptor)
 from nimbus.nimbusgs.auto import haze_evidence, particle_evidence, particle_thresholds, residual_tail_counts
 from nimbus.nimbusgs.config import NimbusConfig, paper_m_init, parse_components, preset
-from nimbus.nimbusgs.ggs import GGSFactors, ggs_weights, robust_normalise, sample_error, scale_gradients
+from nimbus.nimbusgs.ggs import (GGSFactors, ggs_weights, lower_median, robust_normalise, sample_error,
+                                scale_gradients)
 from nimbus.nimbusgs.losses import dcp_loss, soft_dark_channel
 from nimbus.nimbusgs.particulate import (ResidualStore, ViewConsistency, ViewGeometry, consistency_excess,
                                          extract_residual, is_refresh_step, neighbours, particle_mask,
@@ -381,6 +382,40 @@ def test_ggs_factors_follow_the_paper_equation():
     assert float(w.min()) >= 0.5 and float(w.max()) <= 3.0
     off, _ = ggs_weights(d, r, m, err, vis, GGSFactors(depth=False, radius=False, error=False))
     assert torch.all(off == 1.0)
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 8, 100_001])
+def test_lower_median_is_torchs_median(n):
+    g = torch.Generator().manual_seed(n)
+    for x in (torch.rand(n, generator=g), torch.randint(0, 3, (n,), generator=g).float(),  # ties
+              torch.rand(n, generator=g, dtype=torch.float64)):
+        m = lower_median(x)
+        assert m.dtype == x.dtype and m.dim() == 0 and torch.equal(m, x.median())
+    x = torch.rand(n, generator=g)
+    x[n // 2] = float("nan")  # torch's median is NaN then; so is ours
+    assert torch.isnan(lower_median(x))
+
+
+def test_ggs_weights_are_those_of_the_equation_written_out():
+    """The index_select / selection-median implementation against the equation in plain torch ops."""
+    g = torch.Generator().manual_seed(3)
+    n, h, w = 5000, 30, 40
+    d = torch.rand(n, generator=g) * 5 + 0.5
+    r = torch.randint(0, 6, (n,), generator=g, dtype=torch.int32)
+    m = (torch.rand(n, 2, generator=g) * 1.4 - 0.2) * torch.tensor([w, h])
+    err = torch.rand(h, w, generator=g)
+    vis = r > 0
+    got, _ = ggs_weights(d, r, m, err, vis, GGSFactors(clip=(0.5, 3.0)))
+    dv, rv, mv = d[vis], r[vis].float(), m[vis]
+    grid = torch.stack([mv[:, 0] / w * 2 - 1, mv[:, 1] / h * 2 - 1], -1).reshape(1, 1, -1, 2)
+    e = torch.nn.functional.grid_sample(err[None, None], grid, mode="bilinear", padding_mode="border",
+                                        align_corners=False).reshape(-1)
+    med = e.median()
+    en = (e - med) / (e - med).abs().median()
+    wv = (dv - dv.min()) / (dv.max() - dv.min()) * (rv / 3.0) * torch.sigmoid(en)
+    want = torch.ones(n)
+    want[vis] = (wv / wv.mean()).clamp(0.5, 3.0)
+    assert torch.equal(got, want)
 
 
 def test_ggs_degenerate_cases_are_finite():
