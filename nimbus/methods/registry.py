@@ -99,7 +99,7 @@ PAPER: dict[str, Any] = {
     "ggs_clip": (0.0, math.inf),
     # The airlight MLP sees the input pixel and T; 448 wide gives 448^2 + 9 * 448 + 3 = 204,739 parameters,
     # the paper's "0.2M".
-    "airlight": "network", "airlight_input": "pixel", "airlight_hidden": 448,
+    "airlight": "network", "airlight_input": "pixel", "airlight_hidden": 448, "airlight_stride": 1,
 }
 
 #: The paper's M_init ablation (iterations of its 30k schedule), scaled to the preset.

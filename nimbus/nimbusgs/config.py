@@ -150,6 +150,13 @@ class NimbusConfig(TrainConfig):
     airlight_hidden : int
         Width of the airlight MLP's two hidden layers (the paper's MLP has 0.2M parameters:
         448 with ``airlight_input=pixel``, as ``nimbus-paper``).
+    airlight_stride : int
+        The ``network`` airlight is evaluated once per ``airlight_stride`` x ``airlight_stride``
+        block of pixels (its inputs averaged over the block, the ray direction renormalised)
+        and bilinearly upsampled to every pixel (ours; 1: at every pixel, as the paper reads).
+        The MLP is the largest per-pixel cost of a NimbusGS step; A varies slowly across the
+        image (ray direction and transmission), while T and the scattered fraction, which
+        carry the edges, stay per pixel.
     airlight_sh_degree : int
         SH degree of the ``sh`` airlight (0..3).
     lr_airlight : float
@@ -268,6 +275,7 @@ class NimbusConfig(TrainConfig):
     airlight: str = "network"
     airlight_input: str = "view"
     airlight_hidden: int = 64
+    airlight_stride: int = 1
     airlight_sh_degree: int = 1
     lr_airlight: float = 5e-4
     # losses
@@ -314,6 +322,7 @@ class NimbusConfig(TrainConfig):
         "ray_samples": at_least(1), "init_transmission": between(0, 1, hi_open=True, note="0: estimate"),
         "lr_extinction": at_least(0), "surface_alpha_min": between(0, 1, lo_open=True),
         "airlight": one_of(*AIRLIGHTS), "airlight_input": one_of(*AIRLIGHT_INPUTS), "airlight_hidden": at_least(1),
+        "airlight_stride": between(1, 64),
         "airlight_sh_degree": between(0, 3),
         "lr_airlight": at_least(0),
         "lambda_dcp": at_least(0), "dcp_form": one_of(*DCP_FORMS), "dcp_patch": at_least(1),

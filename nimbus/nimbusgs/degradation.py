@@ -18,6 +18,7 @@ import math
 import time
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from nimbus.data import Camera
@@ -43,6 +44,24 @@ def march_backend(config: NimbusConfig) -> str:
     compiled CPU kernels where they apply (:func:`~nimbus.nimbusgs.scattering.march`,
     :class:`~nimbus.nimbusgs.airlight.NetworkAirlight`), ``torch`` and gsplat's CUDA path torch ops."""
     return "auto" if config.backend in ("auto", "cpp") else "torch"
+
+
+def block_mean(x: Tensor, h: int, w: int, s: int) -> Tensor:
+    """Means of ``x`` [H * W, C] (row-major pixels) over ``s`` x ``s`` blocks: ``[ceil(H/s) * ceil(W/s), C]``;
+    a block cut by the image edge averages the pixels it has."""
+    c = x.shape[1]
+    img = x.reshape(h, w, c).permute(2, 0, 1)[None]
+    return F.avg_pool2d(img, s, s, ceil_mode=True)[0].permute(1, 2, 0).reshape(-1, c)
+
+
+def upsample_blocks(low: Tensor, h: int, w: int, s: int) -> Tensor:
+    """Per-block values ``low`` [ceil(H/s) * ceil(W/s), C] bilinearly interpolated to every pixel ``[H * W, C]``,
+    each block's value sitting at its centre (edge blocks extrapolate flat)."""
+    hb, wb = -(-h // s), -(-w // s)
+    c = low.shape[1]
+    img = low.reshape(hb, wb, c).permute(2, 0, 1)[None]
+    up = F.interpolate(img, scale_factor=s, mode="bilinear", align_corners=False, recompute_scale_factor=False)
+    return up[0, :, :h, :w].permute(1, 2, 0).reshape(-1, c)
 
 
 def compose(clean: Tensor, transmission: Tensor, scatter: Tensor) -> Tensor:
@@ -118,9 +137,22 @@ class Medium:
             res = march(self.field, rays.origin, rays.dirs, t_start, t_end, c.ray_samples, march_backend(c))
         else:
             res = gaussian_extinction_map(extinction_image, alpha, t_start, t_end)
-        a = self.airlight(rays.dirs, res.transmission, descriptor, None if image is None else image.reshape(-1, 3))
+        a = self._airlight(rays, res.transmission, descriptor, image)
         h, w = rays.height, rays.width
         return res.transmission.reshape(h, w, 1), (res.scatter[:, None] * a).reshape(h, w, 3)
+
+    def _airlight(self, rays: ViewRays, transmission: Tensor, descriptor: Tensor, image: Tensor | None) -> Tensor:
+        """A [P, 3] at every pixel; the network's evaluated per ``airlight_stride`` block and upsampled."""
+        s = self.cfg.airlight_stride
+        pixels = None if image is None else image.reshape(-1, 3)
+        if s == 1 or self.cfg.airlight != "network":
+            return self.airlight(rays.dirs, transmission, descriptor, pixels)
+        h, w = rays.height, rays.width
+        dirs = block_mean(rays.dirs, h, w, s)
+        dirs = dirs / dirs.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        low = self.airlight(dirs, block_mean(transmission.detach()[:, None], h, w, s)[:, 0], descriptor,
+                            None if pixels is None else block_mean(pixels, h, w, s))
+        return upsample_blocks(low, h, w, s)
 
     def surface_mask(self, rays: ViewRays, render: dict) -> Tensor:
         """[H, W] bool: pixels whose march ends at a surface inside the box (``dcp_surface_only``)."""
