@@ -5,8 +5,11 @@
 
 On the validation scenes (the built-in scenes rendered and degraded with seed 1, as
 :mod:`benchmark.restore_thresholds` makes them; the benchmark's cells use seed 0), each scene's
-seven settings and its clean views, trains ``nimbus`` (tiny preset, training seed 0) four times:
-CSM on or off crossed with PLM on or off (GGS on when either is, as ``auto`` does).  Each
+seven settings and its clean views, trains ``nimbus`` (tiny preset) four times: CSM on or off
+crossed with PLM on or off (GGS on when either is, as ``auto`` does), with the first of
+``--seeds``; the PLM pair at the current haze decision again with every further seed (default
+0 and 1: one seed's PLM gain moves by a few tenths of a dB with nothing but the code's float
+rounding), and the PLM gains and evidence are the means over the seeds.  Each
 decision is made one way through ``auto`` itself, by thresholds it cannot fail or cannot meet,
 so every run records the same evidence an ``auto`` run would (the stage-1 model, and with it
 the particle evidence, does not depend on PLM).  It prints, per cell, the evidence and the
@@ -26,9 +29,9 @@ component by what it gains, whatever the synthesizer put in it (PLM may gain on 
 scene without particles).
 
 ``--checks`` also trains, with CSM as the current haze rule decides and PLM on, without the
-top-hat cap (``residual_tophat=0``) and with the outlier test everywhere
-(``residual_outlier_scope=all``), and prints what each default is worth on the validation
-cells.  ``--report`` trains the same four variants on the benchmark's own cells (seed 0,
+top-hat cap (``residual_tophat=0``), with the outlier test everywhere
+(``residual_outlier_scope=all``) and, on the hazy cells, with the airlight evaluated per 2 x 2
+block (``airlight_stride=2``), and prints what each default is worth on the validation cells.  ``--report`` trains the same four variants on the benchmark's own cells (seed 0,
 tiny, seven settings), applies the current defaults to their evidence and prints where
 ``auto``'s choice is >= :data:`MIN_GAIN_DB` below the best variant: a report, never an
 input to the thresholds.
@@ -47,6 +50,7 @@ import sys
 import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -56,7 +60,11 @@ from nimbus.cli_util import run_cli
 #: A component is needed where forcing it on gains at least this much test PSNR (dB).
 MIN_GAIN_DB = 0.3
 METHOD = "nimbus"
-TRAIN_SEED = 0
+#: Training seeds of the PLM pair (``--seeds``): one seed's gain moves by a few tenths of a dB with the float
+#: rounding of the code, enough to flip a cell across :data:`MIN_GAIN_DB`.
+TRAIN_SEEDS = (0, 1)
+#: A run name's suffix for a training seed other than the first (``csm+plm@s1``).
+SEED_MARK = "@s"
 #: The setting name of a scene's clean views (``ROOT/scenes/<scene>-<size>``).
 CLEAN = "clean"
 
@@ -71,7 +79,10 @@ _PARTICLES = {
 #: The four variants, by which components they force on: name -> (csm, plm).
 VARIANTS = {"csm+plm": (True, True), "csm": (True, False), "plm": (False, True), "none": (False, False)}
 #: The ``--checks`` runs (PLM on, CSM by the current haze rule): name -> extra overrides.
-CHECKS = {"tophat-off": {"residual_tophat": "0"}, "scope-all": {"residual_outlier_scope": "all"}}
+CHECKS = {"tophat-off": {"residual_tophat": "0"}, "scope-all": {"residual_outlier_scope": "all"},
+          "airlight-stride-2": {"airlight_stride": "2"}}
+#: Checks of the medium alone: trained on the cells the haze rule calls hazy only (elsewhere CSM is off).
+HAZE_ONLY_CHECKS = {"airlight-stride-2"}
 
 
 def variant_overrides(csm: bool, plm: bool, extra: dict | None = None) -> dict[str, str]:
@@ -106,7 +117,7 @@ def run_one(job: dict) -> dict:
     config = make_config(get_method(METHOD), job["preset"], job["overrides"])
     with tempfile.TemporaryDirectory(prefix="auto_thresholds_") as tmp:
         run = Path(tmp) / "run"
-        results, _ = train_method(METHOD, load_scene(folder), config, run, seed=TRAIN_SEED,
+        results, _ = train_method(METHOD, load_scene(folder), config, run, seed=job.get("seed", 0),
                                   scene_path=str(folder), progress=False)
         score = score_run(run, folder, results, ssim_protocol="3dgs", lpips_net=None, device=None)
     nim = results["nimbus"]
@@ -134,7 +145,9 @@ def train_all(jobs: list[tuple[tuple[str, str, Path], str, dict[str, str]]], cac
     keys, todo = [], []
     for (data, setting, folder), name, overrides in jobs:
         keys.append((data, setting, name))
+        seed = int(name.partition(SEED_MARK)[2] or 0)
         todo.append({"folder": str(folder), "overrides": overrides, "preset": preset, "threads": threads,
+                     "seed": seed,
                      "out": str(cache / f"{data}_{setting}_{name}_{preset}_{_digest(preset, overrides)}.json")})
     if workers > 1:  # spawned: the parent has torch's thread pools up (it rendered the scenes)
         with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
@@ -142,7 +155,7 @@ def train_all(jobs: list[tuple[tuple[str, str, Path], str, dict[str, str]]], cac
     else:
         recs = [run_one(job) for job in todo]
     for key, job, rec in zip(keys, todo, recs):
-        csm, plm = VARIANTS.get(key[2], (None, None))
+        csm, plm = VARIANTS.get(key[2].partition(SEED_MARK)[0], (None, None))
         comps = set(rec["components"])
         if csm is not None and ("csm" in comps, "plm" in comps) != (csm, plm):
             raise RuntimeError(f"{job['out']}: ran with {sorted(comps)}, not the forced variant {key[2]}")
@@ -180,16 +193,20 @@ class Cell:
         return name, self.psnr[name]
 
 
-def gather(cells: list[tuple[str, str, Path]], recs: dict) -> list[Cell]:
-    """The :class:`Cell` of each scene and setting from the variants that ran."""
+def gather(cells: list[tuple[str, str, Path]], recs: dict, seeds: Sequence[int] = TRAIN_SEEDS) -> list[Cell]:
+    """The :class:`Cell` of each scene and setting from the variants that ran: each variant's PSNR and particle
+    evidence the mean over the training seeds it ran with."""
     out = []
     for data, setting, _ in cells:
-        r = {v: recs[(data, setting, v)] for v in VARIANTS if (data, setting, v) in recs}
-        ev = {csm: (r[name]["particles"]["asymmetry"], r[name]["particles"]["energy"])
-              for csm, name in ((True, "csm+plm"), (False, "plm")) if name in r}
-        haze = next(iter(r.values()))["haze"]
-        out.append(Cell(data, setting, {v: x["psnr"] for v, x in r.items()}, haze["dark_median"],
-                        haze["dark_depth_corr"], ev))
+        runs = {v: [recs[(data, setting, seed_name(v, s))] for s in seeds
+                    if (data, setting, seed_name(v, s)) in recs] for v in VARIANTS}
+        runs = {v: rs for v, rs in runs.items() if rs}
+        ev = {csm: (float(np.mean([x["particles"]["asymmetry"] for x in runs[name]])),
+                    float(np.mean([x["particles"]["energy"] for x in runs[name]])))
+              for csm, name in ((True, "csm+plm"), (False, "plm")) if name in runs}
+        haze = next(iter(runs.values()))[0]["haze"]
+        out.append(Cell(data, setting, {v: float(np.mean([x["psnr"] for x in rs])) for v, rs in runs.items()},
+                        haze["dark_median"], haze["dark_depth_corr"], ev))
     return out
 
 
@@ -210,14 +227,26 @@ def current_haze(folder: Path, preset: str) -> bool:
                          scene.points, cfg.dcp_patch, cfg.auto_dark_threshold, cfg.auto_depth_corr).present
 
 
-def variant_jobs(cells: list[tuple[str, str, Path]], preset: str, quick: bool) -> list:
+def seed_name(variant: str, seed: int) -> str:
+    """The run name of ``variant`` trained with ``seed``: seed 0 unmarked (``csm+plm``), any other marked
+    (``csm+plm@s1``); :func:`train_all` trains it with that seed."""
+    return variant if seed == 0 else f"{variant}{SEED_MARK}{seed}"
+
+
+def variant_jobs(cells: list[tuple[str, str, Path]], preset: str, quick: bool,
+                 seeds: Sequence[int] = TRAIN_SEEDS) -> list:
     """The four variants of each cell (``quick``: only the PLM pair at the current haze decision), the PLM pairs
-    first, so a run cut short has the particle decision's evidence and gains for every cell."""
+    first, so a run cut short has the particle decision's evidence and gains for every cell.  The PLM pair is
+    trained with every one of ``seeds``; CSM's other state with the first only (its gains are several dB)."""
     pairs, rest = [], []
     for cell in cells:
         hazy = current_haze(cell[2], preset)
-        for name, (csm, plm) in VARIANTS.items():
-            (pairs if csm == hazy else rest).append((cell, name, variant_overrides(csm, plm)))
+        for seed in seeds:
+            for name, (csm, plm) in VARIANTS.items():
+                if csm == hazy:
+                    pairs.append((cell, seed_name(name, seed), variant_overrides(csm, plm)))
+                elif seed == seeds[0]:
+                    rest.append((cell, seed_name(name, seed), variant_overrides(csm, plm)))
     return pairs if quick else pairs + rest
 
 
@@ -331,14 +360,18 @@ def report_derivation(cells: list[Cell]) -> None:
               f"{false} of them gain less)")
 
 
-def report_checks(cells: list[Cell], recs: dict) -> None:
-    """What the top-hat cap and the outlier scope are worth (default minus the ``--checks`` run), per cell."""
+def report_checks(cells: list[Cell], recs: dict, base: dict, seed: int = 0) -> None:
+    """What each default is worth (default minus the ``--checks`` run), per cell the check ran on; ``base``: the
+    derivation's runs, whose run with training ``seed`` (the checks') is the default."""
     for name in CHECKS:
         rows = []
         for c in cells:
-            rec = recs[(c.data, c.setting, name)]
-            base = c.psnr["csm+plm" if "csm" in rec["components"] else "plm"]
-            rows.append((f"{c.data} {c.setting}", base - rec["psnr"]))
+            rec = recs.get((c.data, c.setting, seed_name(name, seed)))
+            if rec is None:  # a haze-only check on a haze-free cell
+                continue
+            variant = "csm+plm" if "csm" in rec["components"] else "plm"
+            base_psnr = base[(c.data, c.setting, seed_name(variant, seed))]["psnr"]
+            rows.append((f"{c.data} {c.setting}", base_psnr - rec["psnr"]))
         d = np.array([x for _, x in rows])
         print(f"default minus {name}: mean {d.mean():+.3f} dB, min {d.min():+.3f}, max {d.max():+.3f}, "
               f"{int((d > 0).sum())} of {len(d)} cells better with the default")
@@ -381,6 +414,19 @@ def report_cells(root: Path, sizes: list[str]) -> list[tuple[str, str, Path]]:
     return [(c.data_name, c.weather, data_dir(root, c)) for c in grid]
 
 
+def parse_seeds(text: str) -> list[int]:
+    """``--seeds``: distinct non-negative integers (CSM's other state trains with the first)."""
+    from nimbus.errors import NimbusError
+
+    try:
+        seeds = [int(s) for s in text.split(",") if s.strip()]
+    except ValueError:
+        seeds = []
+    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+        raise NimbusError(f"--seeds {text!r}: give distinct non-negative integers, e.g. --seeds 0,1")
+    return seeds
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmark.auto_thresholds", description=__doc__.split("\n")[0])
     parser.add_argument("--root", default=None, help="where the scenes are (made): default auto-validation, or "
@@ -390,9 +436,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cache", default=None, help="per-run JSON figures (default ROOT/runs)")
     parser.add_argument("--jobs", type=int, default=1, help="runs trained at once")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads per run")
-    parser.add_argument("--checks", action="store_true", help="also what the top-hat cap and outlier scope are worth")
+    parser.add_argument("--checks", action="store_true",
+                        help="also what the top-hat cap, the outlier scope and the per-pixel airlight are worth")
     parser.add_argument("--quick", action="store_true", help="only the PLM pair at the current haze decision "
                         "(no CSM gains: the haze rule is not derived)")
+    parser.add_argument("--seeds", default=",".join(map(str, TRAIN_SEEDS)),
+                        help="training seeds of the PLM pair, comma-separated (gains and evidence averaged)")
     parser.add_argument("--report", action="store_true", help="auto on the benchmark's seed-0 cells (report only)")
     args = parser.parse_args(argv)
     root = Path(args.root or ("auto-report" if args.report else "auto-validation"))
@@ -401,11 +450,13 @@ def main(argv: list[str] | None = None) -> int:
 
     for size in sizes:  # an unknown size is one error line, before anything is written
         get_size(size)
+    seeds = parse_seeds(args.seeds)
     cells = report_cells(root, sizes) if args.report else cell_folders(root, sizes)
     cache = Path(args.cache) if args.cache else root / "runs"
     cache.mkdir(parents=True, exist_ok=True)
-    recs = train_all(variant_jobs(cells, args.preset, args.quick), cache, args.preset, args.jobs, args.threads)
-    gathered = gather(cells, recs)
+    recs = train_all(variant_jobs(cells, args.preset, args.quick, seeds), cache, args.preset, args.jobs,
+                     args.threads)
+    gathered = gather(cells, recs, seeds)
     if args.report:
         report_auto(gathered)
         return 0
@@ -416,9 +467,10 @@ def main(argv: list[str] | None = None) -> int:
             if cell[1] == CLEAN:
                 continue
             hazy = current_haze(cell[2], args.preset)
-            jobs += [(cell, name, variant_overrides(hazy, True, extra)) for name, extra in CHECKS.items()]
+            jobs += [(cell, seed_name(name, seeds[0]), variant_overrides(hazy, True, extra))
+                     for name, extra in CHECKS.items() if hazy or name not in HAZE_ONLY_CHECKS]
         checks = train_all(jobs, cache, args.preset, args.jobs, args.threads)
-        report_checks([c for c in gathered if c.setting != CLEAN], checks)
+        report_checks([c for c in gathered if c.setting != CLEAN], checks, recs, seeds[0])
     return 0
 
 if __name__ == "__main__":

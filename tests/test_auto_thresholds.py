@@ -77,3 +77,54 @@ def test_an_unknown_size_is_one_line_and_writes_nothing(argv, tmp_path, monkeypa
         assert run_cli(main, argv) == 2
         assert "unknown scene size 'huge'" in capsys.readouterr().err
         assert not list(tmp_path.iterdir())
+
+
+def test_checks_report_each_default_against_its_runs_and_skip_haze_only_checks_on_clear_cells(capsys):
+    from benchmark.auto_thresholds import CHECKS, HAZE_ONLY_CHECKS, report_checks
+
+    assert HAZE_ONLY_CHECKS <= set(CHECKS)
+    cells = [cell("H", 0.0, 0.1, 0.0, csm_gain=2.0), cell("R", 1.0, 0.3, 0.001)]
+    recs = {}
+    for name in CHECKS:  # each check costs 0.5 dB on the hazy cell (its base: csm+plm) and gains 0.25 on the other
+        recs[("scene-tiny", "H", name)] = {"psnr": cells[0].psnr["csm+plm"] - 0.5, "components": ["csm", "plm"]}
+        if name not in HAZE_ONLY_CHECKS:
+            recs[("scene-tiny", "R", name)] = {"psnr": cells[1].psnr["plm"] + 0.25, "components": ["plm"]}
+    base = {("scene-tiny", "H", "csm+plm"): {"psnr": cells[0].psnr["csm+plm"]},
+            ("scene-tiny", "R", "plm"): {"psnr": cells[1].psnr["plm"]}}
+    report_checks(cells, recs, base)
+    lines = {line.split(":")[0]: line for line in capsys.readouterr().out.splitlines() if line.startswith("default")}
+    for name in CHECKS:
+        line = lines[f"default minus {name}"]
+        if name in HAZE_ONLY_CHECKS:
+            assert "mean +0.500 dB" in line and "1 of 1 cells" in line
+        else:
+            assert "mean +0.125 dB" in line and "1 of 2 cells" in line
+
+
+def test_gains_and_evidence_are_means_over_the_training_seeds(tmp_path):
+    from benchmark.auto_thresholds import gather, seed_name
+
+    assert seed_name("csm+plm", 0) == "csm+plm" and seed_name("csm+plm", 1) == "csm+plm@s1"
+    haze = {"dark_median": 0.05, "dark_depth_corr": 0.0}
+
+    def rec(psnr, asym, energy):
+        return {"psnr": psnr, "haze": haze, "particles": {"asymmetry": asym, "energy": energy}}
+
+    recs = {("d", "R", "plm"): rec(20.5, 0.2, 0.001), ("d", "R", "none"): rec(20.0, 0.2, 0.001),
+            ("d", "R", "plm@s1"): rec(19.9, 0.4, 0.003), ("d", "R", "none@s1"): rec(20.0, 0.4, 0.003),
+            ("d", "R", "csm"): rec(15.0, 0.3, 0.002), ("d", "R", "csm+plm"): rec(15.2, 0.3, 0.002)}
+    [c] = gather([("d", "R", tmp_path)], recs, [0, 1])
+    # seed 0 alone: PLM gains 0.5 dB (needed); with seed 1 (-0.1 dB) the mean gain is 0.2 dB
+    assert c.plm_gain(False) == pytest.approx(0.2) and c.particles[False] == pytest.approx((0.3, 0.002))
+    assert c.complete and c.psnr["csm"] == 15.0
+    [one] = gather([("d", "R", tmp_path)], recs, [0])
+    assert one.plm_gain(False) == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("text", ["", "a", "1,1", "-1", "0,,x"])
+def test_bad_seeds_are_one_clear_error(text):
+    from benchmark.auto_thresholds import parse_seeds
+    from nimbus.errors import NimbusError
+
+    with pytest.raises(NimbusError, match="--seeds"):
+        parse_seeds(text)
