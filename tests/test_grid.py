@@ -315,17 +315,22 @@ def _kill_second_cell_at(monkeypatch, step: int):
     monkeypatch.setattr(GaussianSplatting, "train_iteration", killed)
 
 
-def test_a_killed_cell_continues_from_its_last_checkpoint(finished, tmp_path, monkeypatch):
+def _killed_grid(finished, tmp_path, monkeypatch):
+    """A grid of two cells checkpointing every 2 steps whose second cell died before its step 4 (after the
+    checkpoint of step 2): ``(root, cells, its .partial folder)``."""
     root = copy_data(finished[0], tmp_path)
     grid_cells = build_cells(["garden"], ["H", "R"], ["3dgs"], ["tiny"], [0], "tiny", OVERRIDES)
-    # checkpoints every 2 steps; the second cell dies before step 4, after the checkpoint of step 2
     monkeypatch.setattr(cell, "make_config", _with_checkpoints_every(2))
     _kill_second_cell_at(monkeypatch, 4)
     with pytest.raises(_Killed):
         run_grid(grid_cells, root, InlineExecutor(), OPTIONS, progress=False, log=lambda s: None)
     partial = root / "runs" / (grid_cells[1].cell_id + cell.PARTIAL_SUFFIX)
     assert (partial / "checkpoint.pt").is_file()
+    return root, grid_cells, partial
 
+
+def test_a_killed_cell_continues_from_its_last_checkpoint(finished, tmp_path, monkeypatch):
+    root, grid_cells, partial = _killed_grid(finished, tmp_path, monkeypatch)
     from nimbus.methods.gs3d import GaussianSplatting
     monkeypatch.setattr(GaussianSplatting, "train_iteration", _ORIGINAL_STEP)  # the kill undone, the config kept
     outcome = run_grid(grid_cells, root, InlineExecutor(), OPTIONS, progress=False, log=lambda s: None)
@@ -339,13 +344,7 @@ def test_a_killed_cell_continues_from_its_last_checkpoint(finished, tmp_path, mo
 
 
 def test_a_partial_run_of_other_settings_is_not_resumed(finished, tmp_path, monkeypatch):
-    root = copy_data(finished[0], tmp_path)
-    grid_cells = build_cells(["garden"], ["H", "R"], ["3dgs"], ["tiny"], [0], "tiny", OVERRIDES)
-    monkeypatch.setattr(cell, "make_config", _with_checkpoints_every(2))
-    _kill_second_cell_at(monkeypatch, 4)
-    with pytest.raises(_Killed):
-        run_grid(grid_cells, root, InlineExecutor(), OPTIONS, progress=False, log=lambda s: None)
-    partial = root / "runs" / (grid_cells[1].cell_id + cell.PARTIAL_SUFFIX)
+    root, grid_cells, partial = _killed_grid(finished, tmp_path, monkeypatch)
     saved = json.loads((partial / "config.json").read_text())
     saved["config"]["lr_opacity"] *= 2  # e.g. a Nimbus whose preset changed since the interrupted attempt
     (partial / "config.json").write_text(json.dumps(saved))
