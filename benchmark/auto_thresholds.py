@@ -145,7 +145,7 @@ def train_all(jobs: list[tuple[tuple[str, str, Path], str, dict[str, str]]], cac
     keys, todo = [], []
     for (data, setting, folder), name, overrides in jobs:
         keys.append((data, setting, name))
-        seed = int(name.partition(SEED_MARK)[2] or 0)
+        seed = split_seed(name)[1]
         todo.append({"folder": str(folder), "overrides": overrides, "preset": preset, "threads": threads,
                      "seed": seed,
                      "out": str(cache / f"{data}_{setting}_{name}_{preset}_{_digest(preset, overrides)}.json")})
@@ -155,7 +155,7 @@ def train_all(jobs: list[tuple[tuple[str, str, Path], str, dict[str, str]]], cac
     else:
         recs = [run_one(job) for job in todo]
     for key, job, rec in zip(keys, todo, recs):
-        csm, plm = VARIANTS.get(key[2].partition(SEED_MARK)[0], (None, None))
+        csm, plm = VARIANTS.get(split_seed(key[2])[0], (None, None))
         comps = set(rec["components"])
         if csm is not None and ("csm" in comps, "plm" in comps) != (csm, plm):
             raise RuntimeError(f"{job['out']}: ran with {sorted(comps)}, not the forced variant {key[2]}")
@@ -231,6 +231,12 @@ def seed_name(variant: str, seed: int) -> str:
     """The run name of ``variant`` trained with ``seed``: seed 0 unmarked (``csm+plm``), any other marked
     (``csm+plm@s1``); :func:`train_all` trains it with that seed."""
     return variant if seed == 0 else f"{variant}{SEED_MARK}{seed}"
+
+
+def split_seed(name: str) -> tuple[str, int]:
+    """``(variant, seed)`` of a run name made by :func:`seed_name` (``csm+plm@s1`` -> ``("csm+plm", 1)``)."""
+    variant, _, seed = name.partition(SEED_MARK)
+    return variant, int(seed or 0)
 
 
 def variant_jobs(cells: list[tuple[str, str, Path]], preset: str, quick: bool,

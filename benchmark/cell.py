@@ -168,6 +168,11 @@ def run_dir(root: Path, cell: Cell) -> Path:
     return Path(root) / "runs" / cell.cell_id
 
 
+def partial_dir(root: Path, cell: Cell) -> Path:
+    """Where a cell trains before its run folder is renamed into place (:func:`run_dir`)."""
+    return run_dir(root, cell).with_name(cell.cell_id + PARTIAL_SUFFIX)
+
+
 def write_clean_scene(scene: str, size: str, out: Path, progress: bool = False) -> bool:
     """Render a built-in scene into ``out`` (seed :data:`SCENE_SEED`) unless it is there; whether it rendered."""
     from nimbus.data.builtin import write_builtin
@@ -251,8 +256,7 @@ def clear_run_dirs(root: Path, cell: Cell) -> tuple[Path, Path]:
     Only the holder of the cell's lock may call this (:func:`benchmark.grid.run_grid` holds it for
     every cell it runs): another run's cell in flight is never removed.
     """
-    final = run_dir(root, cell)
-    partial = final.with_name(cell.cell_id + PARTIAL_SUFFIX)
+    final, partial = run_dir(root, cell), partial_dir(root, cell)
     for leftover in (partial, final):
         if leftover.exists():
             shutil.rmtree(leftover)
@@ -524,8 +528,7 @@ def _train_cell(cell: Cell, root: Path, options: CellOptions) -> dict:
     if not (data / MANIFEST).is_file():
         raise NimbusError(f"{data} is missing; the grid runner prepares it before training (is ROOT shared "
                           "with the workers?)")
-    final = run_dir(root, cell)
-    partial = final.with_name(cell.cell_id + PARTIAL_SUFFIX)
+    final, partial = run_dir(root, cell), partial_dir(root, cell)
     resumed = resumable_partial(partial, cell, config, data, options.device)
     if resumed is not None:
         resumed_from = resumed.iteration

@@ -102,9 +102,10 @@ def test_checks_report_each_default_against_its_runs_and_skip_haze_only_checks_o
 
 
 def test_gains_and_evidence_are_means_over_the_training_seeds(tmp_path):
-    from benchmark.auto_thresholds import gather, seed_name
+    from benchmark.auto_thresholds import gather, seed_name, split_seed
 
     assert seed_name("csm+plm", 0) == "csm+plm" and seed_name("csm+plm", 1) == "csm+plm@s1"
+    assert split_seed("csm+plm@s1") == ("csm+plm", 1) and split_seed("none") == ("none", 0)
     haze = {"dark_median": 0.05, "dark_depth_corr": 0.0}
 
     def rec(psnr, asym, energy):
