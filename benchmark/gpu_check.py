@@ -36,6 +36,7 @@ import argparse
 import sys
 import tempfile
 import time
+import traceback
 from dataclasses import dataclass
 
 import torch
@@ -196,20 +197,28 @@ def check_training(method: str, scene, device, iterations: int, cpu_psnr: float 
     """``method`` trained on ``device`` against the same run on the CPU (``cpu_psnr``: already measured)."""
     name = f"train {method} ({device} vs cpu, {iterations} steps)"
     psnr, seconds = train_psnr(method, scene, device, iterations)
+    cpu_seconds = None
     if cpu_psnr is None:
-        cpu_psnr, _ = train_psnr(method, scene, "cpu", iterations)
+        cpu_psnr, cpu_seconds = train_psnr(method, scene, "cpu", iterations)
     diff = psnr - cpu_psnr
     ok = abs(diff) <= PSNR_TOLERANCE_DB
+    cpu_time = "" if cpu_seconds is None else f" ({cpu_seconds:.1f} s on the CPU)"
     return Verdict(name, "PASS" if ok else "FAIL",
                    f"PSNR {psnr:.2f} dB vs {cpu_psnr:.2f} dB on the CPU ({diff:+.2f} dB, tolerance "
-                   f"{PSNR_TOLERANCE_DB} dB), trained in {seconds:.1f} s")
+                   f"{PSNR_TOLERANCE_DB} dB), trained in {seconds:.1f} s{cpu_time}")
+
+
+#: Print a crashed check's traceback to stderr (``--traceback``).
+_TRACEBACKS = False
 
 
 def _guarded(fn, name: str, *args) -> list[Verdict]:
-    """``fn(*args)`` as verdicts; an exception is a FAIL naming it."""
+    """``fn(*args)`` as verdicts; an exception is a FAIL naming it (and its traceback with ``--traceback``)."""
     try:
         out = fn(*args)
     except Exception as exc:  # noqa: BLE001 - a crash is this check's verdict, the others still run
+        if _TRACEBACKS:
+            traceback.print_exc(file=sys.stderr)
         return [Verdict(name, "FAIL", f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}")]
     return out if isinstance(out, list) else [out]
 
@@ -238,7 +247,10 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", default="builtin:garden:tiny", help="the scene trained on (default: %(default)s)")
     parser.add_argument("--iterations", type=int, default=150, help="training steps per run (default: %(default)s)")
+    parser.add_argument("--traceback", action="store_true", help="print a crashed check's traceback to stderr")
     args = parser.parse_args(argv)
+    global _TRACEBACKS
+    _TRACEBACKS = args.traceback
     if not torch.cuda.is_available():
         print(f"no CUDA device here (torch {torch.__version__}, built for CUDA {torch.version.cuda}): "
               "nothing to check; run this on a machine with an NVIDIA GPU")

@@ -36,6 +36,18 @@ def test_a_crashing_check_is_a_fail_line():
     assert v.line() == "FAIL  torch vs reference: RuntimeError: CUDA error: no kernel image is available"
 
 
+def test_traceback_flag_prints_the_crash_to_stderr(monkeypatch, capsys):
+    def broken(device):
+        raise RuntimeError("deep inside")
+
+    gpu_check._guarded(broken, "march", "cuda")
+    assert "Traceback" not in capsys.readouterr().err
+    monkeypatch.setattr(gpu_check, "_TRACEBACKS", True)
+    (v,) = gpu_check._guarded(broken, "march", "cuda")
+    err = capsys.readouterr().err
+    assert v.status == "FAIL" and "Traceback" in err and "in broken" in err and "deep inside" in err
+
+
 def test_torch_backend_and_march_checks_pass_on_the_cpu():
     v = gpu_check.check_torch_vs_reference("cpu")
     assert v.status == "PASS", v.line()
