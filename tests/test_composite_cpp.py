@@ -11,6 +11,9 @@ from __future__ import annotations
 import math
 import os
 import shutil
+import subprocess
+import sys
+import time
 import warnings
 
 import pytest
@@ -433,6 +436,62 @@ def test_a_killed_build_does_not_make_later_loads_wait_forever(tmp_path, capsys,
     monkeypatch.setattr(extension.time, "sleep", release_on_second_poll)
     extension._wait_for_build(str(tmp_path), idle_s=5.0, poll_s=0.01)
     assert len(seen) == 2 and not lock.exists() and capsys.readouterr().err == ""
+
+
+_HOLDER = """
+import fcntl, os, sys, time
+build_dir, hold_s = sys.argv[1], float(sys.argv[2])
+with open(os.path.join(build_dir, "nimbus-build.lock"), "a") as fh:
+    fcntl.flock(fh, fcntl.LOCK_EX)
+    lock = os.path.join(build_dir, "lock")
+    open(lock, "w").close()
+    old = time.time() - 10 * 600.0  # torch's lock looks ancient and the folder idle: a stopped or niced build
+    os.utime(lock, (old, old))
+    open(os.path.join(build_dir, "ready"), "w").close()
+    time.sleep(hold_s)
+    os.remove(lock)  # torch's baton release at the end of the build
+"""
+
+
+@pytest.mark.skipif(extension.fcntl is None, reason="flock is POSIX-only")
+def test_a_slow_live_build_is_waited_for_not_declared_stale(tmp_path):
+    """A build that writes nothing for a long time (niced, paused with SIGSTOP) still holds the OS lock: a second
+    process waits for it and never removes torch's lock file under it (the idle heuristic would have)."""
+    holder = subprocess.Popen([sys.executable, "-c", _HOLDER, str(tmp_path), "1.5"])
+    try:
+        deadline = time.monotonic() + 30
+        while not (tmp_path / "ready").exists():
+            assert holder.poll() is None and time.monotonic() < deadline, "the lock holder did not start"
+            time.sleep(0.02)
+        said = []
+        t0 = time.monotonic()
+        with extension.build_turn(str(tmp_path), say=said.append):
+            waited = time.monotonic() - t0
+            assert not (tmp_path / "lock").exists()  # gone because its holder finished, not removed by us
+        assert waited > 0.5
+        assert said == [f"nimbus: waiting for another process to finish building the kernels in {tmp_path}"]
+        assert holder.wait(timeout=30) == 0  # its own removal of torch's lock found the file
+    finally:
+        holder.kill()
+
+
+@pytest.mark.skipif(extension.fcntl is None, reason="flock is POSIX-only")
+def test_torch_lock_of_a_killed_build_is_removed_at_once(tmp_path):
+    holder = subprocess.Popen([sys.executable, "-c", _HOLDER, str(tmp_path), "60"])
+    deadline = time.monotonic() + 30
+    while not (tmp_path / "ready").exists():
+        assert holder.poll() is None and time.monotonic() < deadline, "the lock holder did not start"
+        time.sleep(0.02)
+    holder.kill()  # killed mid-build: torch's lock file stays, the OS lock goes with the process
+    holder.wait(timeout=30)
+    assert (tmp_path / "lock").exists()
+    said = []
+    with extension.build_turn(str(tmp_path), say=said.append):
+        assert not (tmp_path / "lock").exists()
+    assert said == [f"nimbus: removed a stale compiler lock left by an interrupted build in {tmp_path}"]
+    with extension.build_turn(str(tmp_path), say=said.append):  # nothing left over: nothing said
+        pass
+    assert len(said) == 1
 
 
 def test_build_failure_falls_back_with_one_warning(monkeypatch):

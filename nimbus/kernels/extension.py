@@ -6,8 +6,13 @@ An :class:`Extension` is built from C++ sources in ``nimbus/kernels/csrc`` with
 directory (``$TORCH_EXTENSIONS_DIR`` or ``~/.cache/torch_extensions``), ``<name>`` the
 extension's name with the torch version and ``<tree>`` a hash of this source folder, so
 that two checkouts never share (and rebuild over) one build, and two extensions never
-share one folder.  A build lock left by a killed build is removed once its folder has
-been idle for 3 minutes.  The first build takes about 10-15 s (g++ and ninja); later
+share one folder.  Processes building one library take turns through an OS file lock
+(``flock`` on ``nimbus-build.lock`` in the build folder), which the system releases when its
+holder exits or is killed: a process holding it knows no live build is running, so torch's own
+lock file found then was left by a killed build and is removed at once, while a slow, niced or
+paused build is waited for, however long it takes.  Where ``flock`` is missing (not POSIX, or a
+file system without it) a torch lock file is judged stale once its folder has been idle for 3
+minutes, as before.  The first build takes about 10-15 s (g++ and ninja); later
 processes only load the cached library, and an edited source (or ``common.h``) is rebuilt.
 
 :meth:`Extension.available` builds/loads the library once per process and returns False,
@@ -23,6 +28,7 @@ runs as written.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import sys
@@ -32,6 +38,11 @@ import warnings
 from pathlib import Path
 
 import torch
+
+try:
+    import fcntl
+except ImportError:  # not POSIX: the idle-folder heuristic alone (_wait_for_build)
+    fcntl = None
 
 __all__ = ["Extension", "CSRC"]
 
@@ -91,6 +102,47 @@ def _wait_for_build(build_dir: str, idle_s: float = _IDLE_BUILD_S, poll_s: float
         time.sleep(poll_s)
 
 
+#: The OS-locked file that serialises the builds of one library (in its build folder).
+BUILD_LOCK = "nimbus-build.lock"
+
+
+@contextlib.contextmanager
+def build_turn(build_dir: str, say=None):
+    """Hold the build folder's OS lock (``flock`` on :data:`BUILD_LOCK`) for the ``with`` block.
+
+    A process that holds it is the only live builder of this folder, so torch's lock file found
+    then is a leftover of a killed build and is removed.  Waiting for another holder is announced
+    once through ``say`` (default: one line on stderr).  Where ``flock`` is unavailable, falls back to
+    :func:`_wait_for_build` (stale when the folder has been idle for ``_IDLE_BUILD_S``).
+    """
+    say = say or (lambda msg: print(msg, file=sys.stderr, flush=True))
+    handle = None
+    if fcntl is not None:
+        try:
+            handle = open(os.path.join(build_dir, BUILD_LOCK), "a")  # noqa: SIM115 - closed in finally
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                say(f"nimbus: waiting for another process to finish building the kernels in {build_dir}")
+                fcntl.flock(handle, fcntl.LOCK_EX)
+        except OSError:  # a file system without flock, or an unwritable folder: the heuristic below
+            if handle is not None:
+                handle.close()
+            handle = None
+    try:
+        if handle is None:
+            _wait_for_build(build_dir)
+        else:
+            lock = os.path.join(build_dir, "lock")
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(lock)
+                say(f"nimbus: removed a stale compiler lock left by an interrupted build in {build_dir}")
+        yield
+    finally:
+        if handle is not None:
+            handle.close()  # closing releases the flock
+
+
 def disabled() -> bool:
     """Whether ``NIMBUS_DISABLE_CPP`` turns every compiled kernel off (any value but empty or ``0``)."""
     return os.environ.get("NIMBUS_DISABLE_CPP", "") not in ("", "0")
@@ -136,18 +188,20 @@ class Extension:
         from torch.utils import cpp_extension
 
         build_dir = self.build_dir()
+        turn = contextlib.nullcontext()
         if build_dir is not None:
             os.makedirs(build_dir, exist_ok=True)
-            _wait_for_build(build_dir)
-        cpp_extension.load(
-            name=self.name,
-            sources=[str(p) for p in self.sources],
-            extra_cflags=list(_CFLAGS),
-            extra_ldflags=list(_LDFLAGS),
-            build_directory=build_dir,
-            is_python_module=False,
-            verbose=False,
-        )
+            turn = build_turn(build_dir)
+        with turn:
+            cpp_extension.load(
+                name=self.name,
+                sources=[str(p) for p in self.sources],
+                extra_cflags=list(_CFLAGS),
+                extra_ldflags=list(_LDFLAGS),
+                build_directory=build_dir,
+                is_python_module=False,
+                verbose=False,
+            )
 
     def available(self, warn: bool = True) -> bool:
         """Whether the library can be used; builds or loads it on the first call.
