@@ -19,7 +19,8 @@ On a CUDA machine, installing nothing, it checks:
    transmission, scatter and the grid's gradient (atol 1e-5, rtol 1e-4).
 4. ``train 3dgs`` / ``train nimbus-full``: the ``tiny`` preset (``--iterations`` steps, the
    schedule rescaled) on ``--scene`` on CUDA and on the CPU; PASS when the test PSNRs differ by
-   at most :data:`PSNR_TOLERANCE_DB`.  The two runs cannot be equal: the CPU uses the compiled
+   at most :data:`PSNR_TOLERANCE_DB`.  The line also gives both runs' training seconds and the
+   CUDA run's peak memory (the allocator's peak).  The two runs cannot be equal: the CPU uses the compiled
    kernels, CUDA gsplat (or torch) with other rounding, alpha clamp and non-deterministic
    atomics, and a few hundred steps of Adam and densification amplify any difference; a broken
    CUDA path costs many dB (or diverges), not a fraction of one.
@@ -181,8 +182,9 @@ def check_march(device) -> Verdict:
     return Verdict(name, "PASS", "transmission, scatter and the grid's gradient equal within atol 1e-5")
 
 
-def train_psnr(method: str, scene, device, iterations: int) -> tuple[float, float]:
-    """Test PSNR (dB) and training seconds of ``method``'s ``tiny`` preset on ``scene``, trained on ``device``."""
+def train_psnr(method: str, scene, device, iterations: int) -> tuple[float, float, float]:
+    """Test PSNR (dB), training seconds and peak memory (MB: the CUDA allocator's peak on a GPU, the process's
+    resident-set peak on the CPU) of ``method``'s ``tiny`` preset on ``scene``, trained on ``device``."""
     from nimbus.methods.registry import get_method
     from nimbus.train.runner import Runner
 
@@ -190,22 +192,22 @@ def train_psnr(method: str, scene, device, iterations: int) -> tuple[float, floa
     with tempfile.TemporaryDirectory(prefix="gpu_check_") as out:
         results = Runner(method, scene, config, out, seed=0, progress=False, checkpoints=False,
                          device=torch.device(device)).run()
-    return float(results["psnr"]), float(results["train_time_s"])
+    return float(results["psnr"]), float(results["train_time_s"]), float(results["peak_memory_mb"])
 
 
 def check_training(method: str, scene, device, iterations: int, cpu_psnr: float | None = None) -> Verdict:
     """``method`` trained on ``device`` against the same run on the CPU (``cpu_psnr``: already measured)."""
     name = f"train {method} ({device} vs cpu, {iterations} steps)"
-    psnr, seconds = train_psnr(method, scene, device, iterations)
+    psnr, seconds, peak_mb = train_psnr(method, scene, device, iterations)
     cpu_seconds = None
     if cpu_psnr is None:
-        cpu_psnr, cpu_seconds = train_psnr(method, scene, "cpu", iterations)
+        cpu_psnr, cpu_seconds, _ = train_psnr(method, scene, "cpu", iterations)
     diff = psnr - cpu_psnr
     ok = abs(diff) <= PSNR_TOLERANCE_DB
     cpu_time = "" if cpu_seconds is None else f" ({cpu_seconds:.1f} s on the CPU)"
     return Verdict(name, "PASS" if ok else "FAIL",
                    f"PSNR {psnr:.2f} dB vs {cpu_psnr:.2f} dB on the CPU ({diff:+.2f} dB, tolerance "
-                   f"{PSNR_TOLERANCE_DB} dB), trained in {seconds:.1f} s{cpu_time}")
+                   f"{PSNR_TOLERANCE_DB} dB), trained in {seconds:.1f} s{cpu_time}, peak memory {peak_mb:.0f} MB")
 
 
 #: Print a crashed check's traceback to stderr (``--traceback``).

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 
@@ -64,9 +66,10 @@ def test_gsplat_is_skipped_off_cuda():
 @pytest.mark.parametrize("method", ["3dgs", "nimbus-full"])
 def test_training_check_compares_psnr_within_the_tolerance(method):
     scene = load_scene_arg("builtin:garden:tiny")
-    psnr, _ = gpu_check.train_psnr(method, scene, "cpu", 12)
-    assert 5.0 < psnr < 60.0
+    psnr, seconds, peak_mb = gpu_check.train_psnr(method, scene, "cpu", 12)
+    assert 5.0 < psnr < 60.0 and seconds > 0 and peak_mb > 50  # a torch process's resident set, at the least
     same = gpu_check.check_training(method, scene, "cpu", 12, cpu_psnr=psnr)
     assert same.status == "PASS" and "+0.00 dB" in same.detail, same.line()  # CPU training is deterministic
+    assert re.search(r"peak memory \d+ MB$", same.detail), same.line()
     off = gpu_check.check_training(method, scene, "cpu", 12, cpu_psnr=psnr + 2 * gpu_check.PSNR_TOLERANCE_DB)
     assert off.status == "FAIL", off.line()
