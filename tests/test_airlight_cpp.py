@@ -80,7 +80,7 @@ def test_compiled_airlight_is_used_only_where_it_applies(kernel):
     assert not airlight_kernel.usable(x.detach().double(), desc[:3], *weights)  # one dtype
 
 
-def test_compiled_airlight_does_not_depend_on_thread_count_beyond_rounding(kernel):
+def test_compiled_airlight_is_the_same_bits_at_any_thread_count(kernel):
     net = _net(32)
     args = _inputs(9000)
     target = torch.rand(9000, 3, generator=torch.Generator().manual_seed(5))
@@ -94,6 +94,6 @@ def test_compiled_airlight_does_not_depend_on_thread_count_beyond_rounding(kerne
         torch.set_num_threads(threads)
     (a1, g1), (a2, g2), (a2b, g2b) = results
     assert torch.equal(a1, a2)  # the forward is per row
-    assert all(torch.equal(x, y) for x, y in zip(g2, g2b))  # fixed work split: deterministic for a thread count
-    for x, y in zip(g1, g2):
-        torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-8)
+    assert all(torch.equal(x, y) for x, y in zip(g2, g2b))
+    # The rows are split into parts by their number alone (9000 rows: 4 parts), not by the threads.
+    assert all(torch.equal(x, y) for x, y in zip(g1, g2))

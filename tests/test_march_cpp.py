@@ -81,7 +81,7 @@ def test_compiled_march_gradcheck(kernel):
         lambda f: march_kernel.grid_optical_depth(f, grid.lo, grid.hi, origin, dirs, ts, te, 5), (feats,))
 
 
-def test_compiled_march_does_not_depend_on_thread_count_beyond_rounding(kernel):
+def test_compiled_march_is_the_same_bits_at_any_thread_count(kernel):
     grid, rays = _grid(torch.float32, (16, 16, 16), std=0.5), _rays(torch.float32, n=20_000)
     weights = torch.randn(2, 20_000, generator=torch.Generator().manual_seed(3))
     threads = torch.get_num_threads()
@@ -95,8 +95,10 @@ def test_compiled_march_does_not_depend_on_thread_count_beyond_rounding(kernel):
         torch.set_num_threads(threads)
     (one, g1, _), (two, g2, _), (again, g2b, _) = results
     assert torch.equal(one.transmission, two.transmission)  # the forward is per ray
-    assert torch.equal(g2, g2b)  # fixed work split: deterministic for a thread count
-    torch.testing.assert_close(g1, g2, rtol=1e-5, atol=1e-7)
+    assert torch.equal(g2, g2b)
+    # The rays are split into parts by their number alone (20 000 rays: 8 parts), not by the threads: a cell
+    # trained with --jobs 2 (1 thread) equals the same cell with 2 threads.
+    assert torch.equal(g1, g2)
 
 
 def test_torch_march_matches_reference_including_interval_gradients():

@@ -47,8 +47,12 @@ using namespace nimbus_simd;
 
 // Rows per block: its activations ([kRows, H] each) stay in the core's cache through every layer.
 constexpr int64_t kRows = 64;
-// Rows per worker below which another worker does not pay for its gradient buffers.
+// Rows per part below which another part does not pay for its gradient buffers.
 constexpr int64_t kMinRowsPerWorker = 2048;
+// The backward splits the rows into min(kMaxParts, P / kMinRowsPerWorker) parts, a number fixed by P
+// alone: each part sums into its own buffers, added in part order, so the weights' gradients are
+// the same bits whatever the thread count (threads share out the parts).
+constexpr int64_t kMaxParts = 8;
 // Register tiles of C: kWideRows rows by kWideVecs vectors (one broadcast of A feeds four
 // multiplies), and for the columns left over kNarrowRows rows by one vector.
 constexpr int kWideRows = 2;
@@ -324,7 +328,7 @@ std::vector<at::Tensor> airlight_backward(const at::Tensor& x, const at::Tensor&
     const T *xp = x.data_ptr<T>(), *z1p = z1.data_ptr<T>(), *z2p = z2.data_ptr<T>(), *ap = a.data_ptr<T>(),
             *gp = grad_a.data_ptr<T>();
     const int64_t blocks = (P + kRows - 1) / kRows;
-    const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), P / kMinRowsPerWorker));
+    const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(kMaxParts, P / kMinRowsPerWorker));
     std::vector<Grads<T>> acc(workers, Grads<T>(n));
     auto work = [&](int64_t wb, int64_t we) {
       std::vector<T> scratch(5 * kRows * H + kRows * O);

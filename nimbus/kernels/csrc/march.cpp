@@ -50,8 +50,12 @@ using namespace nimbus_simd;
 
 // torch.nn.functional.softplus's default threshold: above it softplus(x) = x.
 constexpr double kSoftplusThreshold = 20.0;
-// Rays per worker below which another worker does not pay for its gradient grid.
+// Rays per part below which another part does not pay for its gradient grid.
 constexpr int64_t kMinRaysPerWorker = 2048;
+// The backward splits the rays into min(kMaxParts, P / kMinRaysPerWorker) parts, a number fixed by P
+// alone: each part sums into its own grid and the grids are added in part order, so the gradient
+// is the same bits whatever the thread count (threads share out the parts).
+constexpr int64_t kMaxParts = 8;
 // Rays per forward task.
 constexpr int64_t kForwardGrain = 256;
 // Samples of a ray processed per block: features gathered first, then softplus in SIMD.
@@ -351,15 +355,14 @@ at::Tensor march_backward(const at::Tensor& features, const at::Tensor& origin, 
               "grad_out must be a contiguous [P] tensor of the features' dtype");
   at::Tensor grad = at::zeros(features.sizes(), features.options());
   const int64_t V = features.numel();
-  const int64_t workers =
-      std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), P / kMinRaysPerWorker));
+  const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(kMaxParts, P / kMinRaysPerWorker));
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "march_backward", [&] {
     using T = scalar_t;
     const Grid<T> g = make_grid<T>(features, lo, hi);
     const Rays<T> rays(origin, dirs, t_start, t_end, samples);
     const T* gS = grad_out.data_ptr<T>();
     T* out = grad.data_ptr<T>();
-    // Worker 0 writes into the result; the others into their own grids, zeroed by their owner.
+    // Part 0 writes into the result; the others into their own grids, zeroed by their owner.
     std::unique_ptr<T[]> extra(workers > 1 ? new T[(workers - 1) * V] : nullptr);
     auto work = [&](int64_t wb, int64_t we) {
       for (int64_t w = wb; w < we; ++w) {
