@@ -453,16 +453,22 @@ with open(os.path.join(build_dir, "nimbus-build.lock"), "a") as fh:
 """
 
 
+def _start_holder(build_dir, hold_s: float) -> subprocess.Popen:
+    """A process that holds ``build_dir``'s build lock for ``hold_s`` s (:data:`_HOLDER`), once it holds it."""
+    holder = subprocess.Popen([sys.executable, "-c", _HOLDER, str(build_dir), str(hold_s)])
+    deadline = time.monotonic() + 30
+    while not (build_dir / "ready").exists():
+        assert holder.poll() is None and time.monotonic() < deadline, "the lock holder did not start"
+        time.sleep(0.02)
+    return holder
+
+
 @pytest.mark.skipif(extension.fcntl is None, reason="flock is POSIX-only")
 def test_a_slow_live_build_is_waited_for_not_declared_stale(tmp_path):
     """A build that writes nothing for a long time (niced, paused with SIGSTOP) still holds the OS lock: a second
     process waits for it and never removes torch's lock file under it (the idle heuristic would have)."""
-    holder = subprocess.Popen([sys.executable, "-c", _HOLDER, str(tmp_path), "1.5"])
+    holder = _start_holder(tmp_path, 1.5)
     try:
-        deadline = time.monotonic() + 30
-        while not (tmp_path / "ready").exists():
-            assert holder.poll() is None and time.monotonic() < deadline, "the lock holder did not start"
-            time.sleep(0.02)
         said = []
         t0 = time.monotonic()
         with extension.build_turn(str(tmp_path), say=said.append):
@@ -477,11 +483,7 @@ def test_a_slow_live_build_is_waited_for_not_declared_stale(tmp_path):
 
 @pytest.mark.skipif(extension.fcntl is None, reason="flock is POSIX-only")
 def test_torch_lock_of_a_killed_build_is_removed_at_once(tmp_path):
-    holder = subprocess.Popen([sys.executable, "-c", _HOLDER, str(tmp_path), "60"])
-    deadline = time.monotonic() + 30
-    while not (tmp_path / "ready").exists():
-        assert holder.poll() is None and time.monotonic() < deadline, "the lock holder did not start"
-        time.sleep(0.02)
+    holder = _start_holder(tmp_path, 60)
     holder.kill()  # killed mid-build: torch's lock file stays, the OS lock goes with the process
     holder.wait(timeout=30)
     assert (tmp_path / "lock").exists()

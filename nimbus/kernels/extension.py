@@ -67,6 +67,10 @@ _TREE_TAG = hashlib.sha1(str(CSRC).encode()).hexdigest()[:8]
 _TORCH_TAG = "_t" + "".join(ch if ch.isalnum() else "_" for ch in torch.__version__)
 
 
+def _stale_lock_message(build_dir: str) -> str:
+    return f"nimbus: removed a stale compiler lock left by an interrupted build in {build_dir}"
+
+
 def _clear_stale_lock(build_dir: str, idle_s: float = _IDLE_BUILD_S) -> bool:
     """Remove the build lock when it is older than ``_STALE_LOCK_S`` or nothing in ``build_dir`` has changed
     for ``idle_s`` (its build was killed); True when this call removed it."""
@@ -96,8 +100,7 @@ def _wait_for_build(build_dir: str, idle_s: float = _IDLE_BUILD_S, poll_s: float
     lock = os.path.join(build_dir, "lock")
     while os.path.exists(lock):
         if _clear_stale_lock(build_dir, idle_s):
-            print(f"nimbus: removed a stale compiler lock left by an interrupted build in {build_dir}",
-                  file=sys.stderr)
+            print(_stale_lock_message(build_dir), file=sys.stderr)
             return
         time.sleep(poll_s)
 
@@ -136,7 +139,7 @@ def build_turn(build_dir: str, say=None):
             lock = os.path.join(build_dir, "lock")
             with contextlib.suppress(FileNotFoundError):
                 os.remove(lock)
-                say(f"nimbus: removed a stale compiler lock left by an interrupted build in {build_dir}")
+                say(_stale_lock_message(build_dir))
         yield
     finally:
         if handle is not None:

@@ -18,8 +18,8 @@
 // over the summed index in order, with no FMA contraction, so the AVX2 clone computes the
 // generic code's numbers.  float32 takes sigmoid's exp from the Cephes polynomial of
 // common.h (~1e-7 relative), float64 (gradcheck, tests) std::exp.  The weight gradients
-// are summed per worker and the workers' sums added in worker order: deterministic for a
-// given thread count (the last bits may differ between thread counts), as the march's.
+// are summed per part (rows split by their number alone: kMaxParts, kMinRowsPerPart) and the
+// parts' sums added in part order: the same bits for any thread count, as the march's.
 //
 // Registered as torch.ops.nimbus_airlight.*; built into NimbusGS's extension with
 // march.cpp by nimbus/kernels/march.py.
@@ -48,10 +48,8 @@ using namespace nimbus_simd;
 // Rows per block: its activations ([kRows, H] each) stay in the core's cache through every layer.
 constexpr int64_t kRows = 64;
 // Rows per part below which another part does not pay for its gradient buffers.
-constexpr int64_t kMinRowsPerWorker = 2048;
-// The backward splits the rows into min(kMaxParts, P / kMinRowsPerWorker) parts, a number fixed by P
-// alone: each part sums into its own buffers, added in part order, so the weights' gradients are
-// the same bits whatever the thread count (threads share out the parts).
+constexpr int64_t kMinRowsPerPart = 2048;
+// The backward's parts: min(kMaxParts, P / kMinRowsPerPart), fixed by P alone (threads share them out).
 constexpr int64_t kMaxParts = 8;
 // Register tiles of C: kWideRows rows by kWideVecs vectors (one broadcast of A feeds four
 // multiplies), and for the columns left over kNarrowRows rows by one vector.
@@ -328,25 +326,25 @@ std::vector<at::Tensor> airlight_backward(const at::Tensor& x, const at::Tensor&
     const T *xp = x.data_ptr<T>(), *z1p = z1.data_ptr<T>(), *z2p = z2.data_ptr<T>(), *ap = a.data_ptr<T>(),
             *gp = grad_a.data_ptr<T>();
     const int64_t blocks = (P + kRows - 1) / kRows;
-    const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(kMaxParts, P / kMinRowsPerWorker));
-    std::vector<Grads<T>> acc(workers, Grads<T>(n));
+    const int64_t parts = std::max<int64_t>(1, std::min<int64_t>(kMaxParts, P / kMinRowsPerPart));
+    std::vector<Grads<T>> acc(parts, Grads<T>(n));
     auto work = [&](int64_t wb, int64_t we) {
       std::vector<T> scratch(5 * kRows * H + kRows * O);
       T* s = scratch.data();
       for (int64_t w = wb; w < we; ++w) {
-        for (int64_t blk = blocks * w / workers; blk < blocks * (w + 1) / workers; ++blk) {
+        for (int64_t blk = blocks * w / parts; blk < blocks * (w + 1) / parts; ++blk) {
           const int64_t r0 = blk * kRows, rows = std::min(kRows, P - r0);
           run_backward(n, xp + r0 * I, rows, z1p + r0 * H, z2p + r0 * H, ap + r0 * O, gp + r0 * O, s,
                        s + 5 * kRows * H, acc[w]);
         }
       }
     };
-    if (workers == 1) {
+    if (parts == 1) {
       work(0, 1);  // parallel_for over a range of 1 would still wake the whole pool
     } else {
-      at::parallel_for(0, workers, 1, work);
+      at::parallel_for(0, parts, 1, work);
     }
-    for (int64_t w = 1; w < workers; ++w) acc[0].add(acc[w]);
+    for (int64_t w = 1; w < parts; ++w) acc[0].add(acc[w]);
     const Grads<T>& g = acc[0];
     auto tensor = [&](const std::vector<T>& v, at::IntArrayRef shape) {
       at::Tensor t = at::empty(shape, x.options());

@@ -19,10 +19,10 @@
 // contraction), so the same numbers as the generic code, in half the vector instructions.
 //
 // Backward: dS/dfeatures only (the rays and their intervals are constants here; the
-// Python wrapper uses the torch path when t0 / t1 need gradients).  Each worker
-// scatters into its own grid and the grids are summed in worker order, so the result
-// is deterministic for a given thread count (it may differ in the last bits between
-// thread counts).
+// Python wrapper uses the torch path when t0 / t1 need gradients).  The rays are split
+// into parts by their number alone (kMaxParts, kMinRaysPerPart); each part scatters into its
+// own grid and the grids are summed in part order, so the result is the same bits for any
+// thread count.
 //
 // Registered as torch.ops.nimbus_march.*; built with airlight.cpp as NimbusGS's extension by
 // nimbus/kernels/march.py (the shared vector helpers, exp and sigmoid are in common.h).
@@ -51,10 +51,8 @@ using namespace nimbus_simd;
 // torch.nn.functional.softplus's default threshold: above it softplus(x) = x.
 constexpr double kSoftplusThreshold = 20.0;
 // Rays per part below which another part does not pay for its gradient grid.
-constexpr int64_t kMinRaysPerWorker = 2048;
-// The backward splits the rays into min(kMaxParts, P / kMinRaysPerWorker) parts, a number fixed by P
-// alone: each part sums into its own grid and the grids are added in part order, so the gradient
-// is the same bits whatever the thread count (threads share out the parts).
+constexpr int64_t kMinRaysPerPart = 2048;
+// The backward's parts: min(kMaxParts, P / kMinRaysPerPart), fixed by P alone (threads share them out).
 constexpr int64_t kMaxParts = 8;
 // Rays per forward task.
 constexpr int64_t kForwardGrain = 256;
@@ -355,7 +353,7 @@ at::Tensor march_backward(const at::Tensor& features, const at::Tensor& origin, 
               "grad_out must be a contiguous [P] tensor of the features' dtype");
   at::Tensor grad = at::zeros(features.sizes(), features.options());
   const int64_t V = features.numel();
-  const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(kMaxParts, P / kMinRaysPerWorker));
+  const int64_t parts = std::max<int64_t>(1, std::min<int64_t>(kMaxParts, P / kMinRaysPerPart));
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "march_backward", [&] {
     using T = scalar_t;
     const Grid<T> g = make_grid<T>(features, lo, hi);
@@ -363,20 +361,20 @@ at::Tensor march_backward(const at::Tensor& features, const at::Tensor& origin, 
     const T* gS = grad_out.data_ptr<T>();
     T* out = grad.data_ptr<T>();
     // Part 0 writes into the result; the others into their own grids, zeroed by their owner.
-    std::unique_ptr<T[]> extra(workers > 1 ? new T[(workers - 1) * V] : nullptr);
+    std::unique_ptr<T[]> extra(parts > 1 ? new T[(parts - 1) * V] : nullptr);
     auto work = [&](int64_t wb, int64_t we) {
       for (int64_t w = wb; w < we; ++w) {
         T* acc = w == 0 ? out : extra.get() + (w - 1) * V;
         if (w > 0) std::fill(acc, acc + V, T(0));
-        run_backward(g, rays, gS, P * w / workers, P * (w + 1) / workers, acc);
+        run_backward(g, rays, gS, P * w / parts, P * (w + 1) / parts, acc);
       }
     };
-    if (workers == 1) {
+    if (parts == 1) {
       work(0, 1);  // parallel_for over a range of 1 would still wake the whole pool
     } else {
-      at::parallel_for(0, workers, 1, work);
+      at::parallel_for(0, parts, 1, work);
       at::parallel_for(0, V, kReduceGrain, [&](int64_t b, int64_t e) {
-        for (int64_t w = 1; w < workers; ++w) {
+        for (int64_t w = 1; w < parts; ++w) {
           const T* src = extra.get() + (w - 1) * V;
           for (int64_t v = b; v < e; ++v) out[v] += src[v];
         }
