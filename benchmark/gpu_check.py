@@ -42,6 +42,8 @@ from dataclasses import dataclass
 
 import torch
 
+from nimbus.errors import NimbusError
+
 #: Largest |PSNR(cuda) - PSNR(cpu)| of the same training run, dB (see the module docstring).
 PSNR_TOLERANCE_DB = 1.0
 #: The random rasterizer scene: image size and Gaussian count (:func:`benchmark.speed.rasterizer.make_scene`).
@@ -226,9 +228,11 @@ def _guarded(fn, name: str, *args) -> list[Verdict]:
 
 
 def run_checks(device, scene_spec: str, iterations: int, methods=("3dgs", "nimbus-full")) -> list[Verdict]:
-    """Every check on ``device``, each verdict printed as it comes."""
+    """Every check on ``device``, each verdict printed as it comes; a bad ``scene_spec`` raises NimbusError
+    before any check runs."""
     from nimbus.train.run_folder import load_scene_arg
 
+    scene = load_scene_arg(scene_spec)
     verdicts = []
 
     def report(vs):
@@ -239,16 +243,26 @@ def run_checks(device, scene_spec: str, iterations: int, methods=("3dgs", "nimbu
     report(_guarded(check_torch_vs_reference, "torch vs reference", device))
     report(_guarded(check_gsplat, "gsplat", device))
     report(_guarded(check_march, "march vs reference", device))
-    scene = load_scene_arg(scene_spec)
     for method in methods:
         report(_guarded(check_training, f"train {method}", method, scene, device, iterations))
     return verdicts
 
 
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number >= 1")
+    return value
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", default="builtin:garden:tiny", help="the scene trained on (default: %(default)s)")
-    parser.add_argument("--iterations", type=int, default=150, help="training steps per run (default: %(default)s)")
+    parser.add_argument("--iterations", type=_positive_int, default=150,
+                        help="training steps per run (default: %(default)s)")
     parser.add_argument("--traceback", action="store_true", help="print a crashed check's traceback to stderr")
     args = parser.parse_args(argv)
     global _TRACEBACKS
@@ -260,7 +274,11 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     print(f"GPU check on {torch.cuda.get_device_name(0)}, torch {torch.__version__}, CUDA {torch.version.cuda}",
           flush=True)
-    verdicts = run_checks("cuda", args.scene, args.iterations)
+    try:
+        verdicts = run_checks("cuda", args.scene, args.iterations)
+    except NimbusError as exc:
+        print(f"gpu_check: {exc}", file=sys.stderr)
+        return 2
     failed = [v for v in verdicts if v.status == "FAIL"]
     print(f"{len(verdicts) - len(failed)} of {len(verdicts)} checks passed or skipped, {len(failed)} failed "
           f"({time.perf_counter() - t0:.0f} s)")

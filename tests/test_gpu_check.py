@@ -29,6 +29,22 @@ def test_any_fail_makes_the_exit_status_1(monkeypatch, capsys):
     assert "2 of 3 checks passed or skipped, 1 failed" in capsys.readouterr().out
 
 
+def test_bad_arguments_are_one_line_and_exit_2_before_any_check(monkeypatch, capsys):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda i: "fake GPU")
+    ran = []
+    monkeypatch.setattr(gpu_check, "check_torch_vs_reference", lambda device: ran.append(device))
+    assert gpu_check.main(["--scene", "builtin:nosuch"]) == 2
+    captured = capsys.readouterr()
+    assert not ran and "PASS" not in captured.out and "FAIL" not in captured.out
+    assert captured.err.strip().splitlines() == [
+        "gpu_check: unknown built-in scene 'nosuch'; choose one of: garden, street, tabletop "
+        "(see `nimbus-synth scene --list`)"]
+    with pytest.raises(SystemExit) as exc:
+        gpu_check.main(["--iterations", "0"])
+    assert exc.value.code == 2 and "'0' is not a whole number >= 1" in capsys.readouterr().err
+
+
 def test_a_crashing_check_is_a_fail_line():
     def broken(device):
         raise RuntimeError("CUDA error: no kernel image is available\nmore")
