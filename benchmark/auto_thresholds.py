@@ -1,10 +1,12 @@
 """The validation runs behind ``components=auto``'s thresholds (:mod:`nimbus.nimbusgs.auto`), and what they show.
 
-    python -m benchmark.auto_thresholds [--root DIR] [--sizes tiny] [--cache DIR] [--jobs N] [--checks]
+    python -m benchmark.auto_thresholds [--root DIR] [--scene-seeds 1,2] [--sizes tiny] [--cache DIR] [--jobs N]
+                                        [--quick] [--checks]
     python -m benchmark.auto_thresholds --report [--root DIR] [--cache DIR]
 
-On the validation scenes (the built-in scenes rendered and degraded with seed 1, as
-:mod:`benchmark.restore_thresholds` makes them; the benchmark's cells use seed 0), each scene's
+On the validation scenes (the built-in scenes rendered and degraded with each of ``--scene-seeds``,
+1 and 2 unless given, as :mod:`benchmark.restore_thresholds` makes them; the benchmark's cells use
+seed 0, and only their held-out test views are ever reported), each scene's
 seven settings and its clean views, trains ``nimbus`` (tiny preset) four times: CSM on or off
 crossed with PLM on or off (GGS on when either is, as ``auto`` does), with the first of
 ``--seeds``; the PLM pair at the current haze decision again with every further seed (default
@@ -21,12 +23,16 @@ forced-on minus forced-off PSNR on the test views, then derives:
   the rest: a cell needs PLM when, with CSM as the haze rule decides, PLM on beats PLM off
   by >= :data:`MIN_GAIN_DB`.
 
-Rule (each decision): every cell that needs the component is declared; among the rules
-that do, the one with the fewest declarations on cells that do not need it.  The current
-defaults are kept when they are among those; otherwise each threshold sits half-way between
-the lowest value a needed cell shows and the next lower value seen.  A cell "needs" a
-component by what it gains, whatever the synthesizer put in it (PLM may gain on a hazy
-scene without particles).
+Rule (each decision): every cell that needs the component is declared; among the rules that
+do, the one that gives away the fewest dB over all the cells (a cell declared that loses from the
+component gives away its loss, a cell left out that gains gives away its gain, however small);
+among those, the one with the widest margin (how far every threshold can move, in spreads of the
+evidence, before a validation cell is decided otherwise).  Each threshold sits half-way between
+two values seen (or below all), rounded to the fewest digits that decide the same.  The current
+defaults are kept when they give away no more and have at least half that margin.  A cell
+"needs" a component by what it gains, whatever the synthesizer put in it (PLM may gain on a hazy
+scene without particles).  The cells of every scene seed count alike (seed 0, the benchmark's own
+data, is refused).
 
 ``--checks`` also trains, with CSM as the current haze rule decides and PLM on, without the
 top-hat cap (``residual_tophat=0``), with the outlier test everywhere
@@ -54,7 +60,7 @@ from typing import Sequence
 
 import numpy as np
 
-from benchmark.restore_thresholds import SCENES, prepare
+from benchmark.restore_thresholds import SCENES, VALIDATION_SEED, prepare
 from nimbus.cli_util import run_cli
 
 #: A component is needed where forcing it on gains at least this much test PSNR (dB).
@@ -65,6 +71,8 @@ METHOD = "nimbus"
 TRAIN_SEEDS = (0, 1)
 #: A run name's suffix for a training seed other than the first (``csm+plm@s1``).
 SEED_MARK = "@s"
+#: Scene and synthesis seeds of the validation scenes (``--scene-seeds``; the benchmark's data use 0).
+SCENE_SEEDS = (VALIDATION_SEED, VALIDATION_SEED + 1)
 #: The setting name of a scene's clean views (``ROOT/scenes/<scene>-<size>``).
 CLEAN = "clean"
 
@@ -90,12 +98,15 @@ def variant_overrides(csm: bool, plm: bool, extra: dict | None = None) -> dict[s
     return {**_HAZE[csm], **_PARTICLES[plm], "write_decomposition": "false", **(extra or {})}
 
 
-def cell_folders(root: Path, sizes: list[str]) -> list[tuple[str, str, Path]]:
-    """``(scene-size, setting, folder)`` of every validation cell: each scene's clean views and seven settings."""
+def cell_folders(root: Path, sizes: list[str], seeds: Sequence[int] = SCENE_SEEDS) -> list[tuple[str, str, Path]]:
+    """``(scene-size@seed, setting, folder)`` of every validation cell: for each scene seed (its scenes under
+    ``root/seed-N``), each scene's clean views and seven settings."""
     out = []
-    for data in prepare(root, sizes):
-        out.append((data.name, CLEAN, root / "scenes" / data.name))
-        out += [(data.name, s.name, s) for s in sorted(data.iterdir()) if (s / "manifest.json").is_file()]
+    for seed in seeds:
+        for data in prepare(root / f"seed-{seed}", sizes, seed):
+            label = f"{data.name}@{seed}"
+            out.append((label, CLEAN, data.parent.parent / "scenes" / data.name))
+            out += [(label, s.name, s) for s in sorted(data.iterdir()) if (s / "manifest.json").is_file()]
     return out
 
 
@@ -272,35 +283,91 @@ def _round(x: float, keep) -> float:
     return x
 
 
-def choose(needed: np.ndarray, declare, candidates: list[tuple], current: tuple) -> tuple[tuple, int, bool]:
-    """The rule of the module docstring: ``(thresholds, false declarations, current kept)``.
+@dataclasses.dataclass(frozen=True)
+class Choice:
+    """A derived rule: its ``thresholds``, the validation dB it gives away (``shortfall``: the summed PSNR of the
+    better state not taken), its declarations on cells that gain less than :data:`MIN_GAIN_DB` (``false``), its
+    ``margin`` (how far, in spreads of the evidence, every threshold can move before a cell's decision changes)
+    and whether the ``current`` defaults were ``kept``."""
 
-    ``declare(thresholds)`` gives the declared cells (bool array); ``candidates`` are tried in
-    order of preference (the first of equally good ones wins).
+    thresholds: tuple
+    shortfall: float
+    false: int
+    margin: float
+    kept: bool
+
+
+def spread(values: np.ndarray) -> float:
+    """A threshold's unit for :func:`margin`: the standard deviation of its evidence (its magnitude when all
+    cells show the same value, 1 when that is 0)."""
+    v = np.asarray(values, np.float64)
+    return float(v.std()) or float(np.abs(v).max(initial=0.0)) or 1.0
+
+
+def margin(declare, t: tuple, scale: np.ndarray, top: float = 10.0) -> float:
+    """How far (in units of ``scale`` per threshold) every threshold of ``t`` can move, all at once and either
+    way, before ``declare`` decides a cell differently.  ``declare`` is monotone (a higher threshold never declares
+    more), so moving all down and all up are the extremes."""
+    same = declare(t)
+    t0 = np.asarray(t, np.float64)
+
+    def holds(d):
+        return (declare(tuple(t0 - d * scale)) == same).all() and (declare(tuple(t0 + d * scale)) == same).all()
+
+    if holds(top):
+        return top
+    lo, hi = 0.0, top
+    for _ in range(40):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if holds(mid) else (lo, mid)
+    return lo
+
+
+def shortfall(gains: np.ndarray, declared: np.ndarray) -> float:
+    """The dB a set of decisions gives away against the better state of each cell (summed over the cells)."""
+    return float(np.where(declared, np.maximum(-gains, 0), np.maximum(gains, 0)).sum())
+
+
+def choose(gains: np.ndarray, declare, candidates: list[tuple], current: tuple, scale: np.ndarray) -> Choice:
+    """The rule of the module docstring.
+
+    ``gains``: per cell, forced on minus forced off (dB); ``declare(thresholds)`` gives the declared cells (bool
+    array; monotone); ``candidates`` are tried in order of preference (the first of equally good ones wins);
+    ``scale``: each threshold's unit for :func:`margin` (the spread of its evidence).
     """
-    def false_count(t):
-        d = declare(t)
-        return None if (needed & ~d).any() else int((d & ~needed).sum())
+    needed = gains >= MIN_GAIN_DB
 
-    scored = [(false_count(t), t) for t in candidates]
-    feasible = [(f, t) for f, t in scored if f is not None]
-    best = min(f for f, _ in feasible)
-    if false_count(current) == best:
-        return current, best, True
-    t = next(t for f, t in feasible if f == best)
+    def score(t):
+        d = declare(t)
+        if (needed & ~d).any():
+            return None
+        return shortfall(gains, d), int((d & ~needed).sum())
+
+    scored = [(score(t), t) for t in candidates]
+    feasible = [(s, t) for s, t in scored if s is not None]
+    least = min(s[0] for s, _ in feasible)
+    tied = [(s, t) for s, t in feasible if s[0] <= least + 1e-9]
+    widest = [(s, t, margin(declare, t, scale)) for s, t in tied]
+    s, t, m = max(widest, key=lambda x: x[2])  # max() keeps the first of equal margins
+    cur = score(current)
+    if cur is not None and cur[0] <= least + 1e-9:
+        m_cur = margin(declare, current, scale)
+        if m_cur >= m / 2:  # as good, and not on the edge of a decision: no churn
+            return Choice(tuple(current), cur[0], cur[1], m_cur, True)
     same = declare(t)
     rounded = tuple(_round(x, lambda r, i=i: (declare(t[:i] + (r,) + t[i + 1:]) == same).all())
                     for i, x in enumerate(t))
-    return (rounded if (declare(rounded) == same).all() else t), best, False
+    t = rounded if (declare(rounded) == same).all() else t
+    return Choice(t, s[0], s[1], margin(declare, t, scale), False)
 
 
-def derive_haze(cells: list[Cell], current: tuple[float, float]) -> tuple[tuple, int, bool]:
+def derive_haze(cells: list[Cell], current: tuple[float, float]) -> Choice:
     from nimbus.nimbusgs.auto import haze_present
 
     if not all(c.complete for c in cells):  # no CSM gains without both CSM states
-        return current, -1, True
+        return Choice(tuple(current), float("nan"), -1, float("nan"), True)
 
-    needed = np.array([c.csm_gain >= MIN_GAIN_DB for c in cells])
+    gains = np.array([c.csm_gain for c in cells])
     dm = np.array([c.dark_median for c in cells])
     corr = np.array([c.dark_depth_corr for c in cells])
 
@@ -310,22 +377,32 @@ def derive_haze(cells: list[Cell], current: tuple[float, float]) -> tuple[tuple,
     # Highest thresholds first: of equally good rules, the one declaring haze least readily.  The dark
     # threshold's half also counts (thin veil with a depth correlation).
     dark_cuts = sorted({*_cuts(dm, 0, 1), *(min(2 * x, 1.0) for x in _cuts(dm, 0, 1))}, reverse=True)
-    return choose(needed, declare, [(d, c) for d in dark_cuts for c in _cuts(corr, -1, 1)], current)
+    return choose(gains, declare, [(d, c) for d in dark_cuts for c in _cuts(corr, -1, 1)], current,
+                  np.array([spread(dm), spread(corr)]))
 
 
-def derive_particles(cells: list[Cell], hazy: np.ndarray, group: bool,
-                     current: tuple[float, float]) -> tuple[tuple, int, bool, np.ndarray]:
+def particle_rule(cells: list[Cell], hazy: np.ndarray, group: bool):
+    """``(gains, declare, scale, (asymmetry, energy))`` of the particle pair over the cells in ``group`` (hazy or
+    not): PLM's gains, the cells a pair of thresholds declares, the :func:`spread` of each kind of evidence, and
+    the evidence."""
     sub = [c for c, h in zip(cells, hazy) if h == group]
-    needed = np.array([c.plm_gain(group) >= MIN_GAIN_DB for c in sub])
+    gains = np.array([c.plm_gain(group) for c in sub])
     asym = np.array([c.particles[group][0] for c in sub])
     energy = np.array([c.particles[group][1] for c in sub])
 
     def declare(t):
         return (asym >= t[0]) & (energy >= t[1])
 
+    return gains, declare, np.array([spread(asym), spread(energy)]), (asym, energy)
+
+
+def derive_particles(cells: list[Cell], hazy: np.ndarray, group: bool,
+                     current: tuple[float, float]) -> tuple[Choice, np.ndarray]:
+    """The particle pair of the cells in ``group`` (hazy or not) and the cells it declares."""
+    gains, declare, scale, (asym, energy) = particle_rule(cells, hazy, group)
     cands = [(a, e) for a in _cuts(asym, -1, 1) for e in _cuts(energy, 0, np.inf)]
-    t, false, kept = choose(needed, declare, cands, current)
-    return t, false, kept, declare(t)
+    choice = choose(gains, declare, cands, current, scale)
+    return choice, declare(choice.thresholds)
 
 
 def _cell_table(cells: list[Cell], hazy: np.ndarray) -> list[str]:
@@ -344,26 +421,36 @@ def report_derivation(cells: list[Cell]) -> None:
     from nimbus.nimbusgs.auto import haze_present
     from nimbus.nimbusgs.config import NimbusConfig as C
 
-    (dark, corr), false, kept = derive_haze(cells, (C.auto_dark_threshold, C.auto_depth_corr))
+    haze = derive_haze(cells, (C.auto_dark_threshold, C.auto_depth_corr))
+    dark, corr = haze.thresholds
     hazy = np.array([haze_present(c.dark_median, c.dark_depth_corr, dark, corr) for c in cells])
-    note = (f"{false} cells declared hazy that gain < {MIN_GAIN_DB} dB from CSM" if false >= 0
+    note = (f"{haze.false} cells declared hazy that gain < {MIN_GAIN_DB} dB from CSM, {haze.shortfall:.2f} dB "
+            f"given away, margin {haze.margin:.2f}" if haze.false >= 0
             else "not derived: --quick ran one CSM state per cell")
-    print(f"haze rule: auto_dark_threshold={dark} auto_depth_corr={corr} ({'current kept; ' if kept else ''}{note})")
+    print(f"haze rule: auto_dark_threshold={dark} auto_depth_corr={corr} "
+          f"({'current kept; ' if haze.kept else ''}{note})")
     print("\n".join(_cell_table(cells, hazy)))
     for group, fields in ((False, ("auto_particle_threshold", "auto_particle_energy")),
                           (True, ("auto_particle_threshold_haze", "auto_particle_energy_haze"))):
         sub = [c for c, h in zip(cells, hazy) if h == group]
+        name = "hazy" if group else "haze-free"
         if not sub:
-            print(f"{'hazy' if group else 'haze-free'} cells: none")
+            print(f"{name} cells: none")
             continue
         current = (getattr(C, fields[0]), getattr(C, fields[1]))
-        (a, e), false, kept, declared = derive_particles(cells, hazy, group, current)
+        choice, declared = derive_particles(cells, hazy, group, current)
+        (a, e), (gains, declare, scale, _) = choice.thresholds, particle_rule(cells, hazy, group)
         needed = [c for c in sub if c.plm_gain(group) >= MIN_GAIN_DB]
         without = [f"{c.data} {c.setting}" for c in needed if not {"R", "S"} & set(c.setting.split("+"))]
-        print(f"{'hazy' if group else 'haze-free'} cells ({len(sub)}): {len(needed)} gain >= {MIN_GAIN_DB} dB "
-              f"from PLM ({len(without)} without particles{': ' + ', '.join(without) if without else ''}); "
-              f"{fields[0]}={a} {fields[1]}={e} ({'current kept; ' if kept else ''}{int(declared.sum())} declared, "
-              f"{false} of them gain less)")
+        print(f"{name} cells ({len(sub)}): {len(needed)} gain >= {MIN_GAIN_DB} dB from PLM ({len(without)} without "
+              f"particles{': ' + ', '.join(without) if without else ''}); {fields[0]}={a} {fields[1]}={e} "
+              f"({'current kept; ' if choice.kept else ''}{int(declared.sum())} declared, {choice.false} of them gain "
+              f"less; {choice.shortfall:.2f} dB given away over the {len(sub)}, margin {choice.margin:.2f})")
+        if not choice.kept:
+            now = declare(current)
+            print(f"  the current {current[0]} / {current[1]} here: {int(now.sum())} declared, "
+                  f"{int(((gains >= MIN_GAIN_DB) & ~now).sum())} needed cells missed, {shortfall(gains, now):.2f} dB "
+                  f"given away, margin {margin(declare, current, scale):.2f}")
 
 
 def report_checks(cells: list[Cell], recs: dict, base: dict, seed: int = 0) -> None:
@@ -420,16 +507,20 @@ def report_cells(root: Path, sizes: list[str]) -> list[tuple[str, str, Path]]:
     return [(c.data_name, c.weather, data_dir(root, c)) for c in grid]
 
 
-def parse_seeds(text: str) -> list[int]:
-    """``--seeds``: distinct non-negative integers (CSM's other state trains with the first)."""
+def parse_seeds(text: str, flag: str = "--seeds", least: int = 0) -> list[int]:
+    """``--seeds`` (training) or ``--scene-seeds``: distinct integers >= ``least`` (CSM's other state trains with
+    the first training seed)."""
     from nimbus.errors import NimbusError
 
     try:
         seeds = [int(s) for s in text.split(",") if s.strip()]
     except ValueError:
         seeds = []
-    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
-        raise NimbusError(f"--seeds {text!r}: give distinct non-negative integers, e.g. --seeds 0,1")
+    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < least:
+        extra = (" (0 is the benchmark's own data, reported and never tuned on; --report shows auto on it)"
+                 if least else "")
+        raise NimbusError(f"{flag} {text!r}: give distinct integers >= {least}, e.g. {flag} {least},{least + 1}"
+                          f"{extra}")
     return seeds
 
 
@@ -448,6 +539,9 @@ def main(argv: list[str] | None = None) -> int:
                         "(no CSM gains: the haze rule is not derived)")
     parser.add_argument("--seeds", default=",".join(map(str, TRAIN_SEEDS)),
                         help="training seeds of the PLM pair, comma-separated (gains and evidence averaged)")
+    parser.add_argument("--scene-seeds", default=",".join(map(str, SCENE_SEEDS)),
+                        help="scene and synthesis seeds of the validation scenes, comma-separated, each's scenes "
+                        "under ROOT/seed-N (the benchmark's data use 0)")
     parser.add_argument("--report", action="store_true", help="auto on the benchmark's seed-0 cells (report only)")
     args = parser.parse_args(argv)
     root = Path(args.root or ("auto-report" if args.report else "auto-validation"))
@@ -457,7 +551,8 @@ def main(argv: list[str] | None = None) -> int:
     for size in sizes:  # an unknown size is one error line, before anything is written
         get_size(size)
     seeds = parse_seeds(args.seeds)
-    cells = report_cells(root, sizes) if args.report else cell_folders(root, sizes)
+    scene_seeds = parse_seeds(args.scene_seeds, "--scene-seeds", least=1)
+    cells = report_cells(root, sizes) if args.report else cell_folders(root, sizes, scene_seeds)
     cache = Path(args.cache) if args.cache else root / "runs"
     cache.mkdir(parents=True, exist_ok=True)
     recs = train_all(variant_jobs(cells, args.preset, args.quick, seeds), cache, args.preset, args.jobs,

@@ -23,27 +23,36 @@ VALIDATION_SEED = 1
 SCENES = ("garden", "street", "tabletop")
 
 
-def prepare(root: Path, sizes: list[str]) -> list[Path]:
-    """The degraded scene folders (``root/data/<scene>-<size>``), rendered and synthesised where missing.
+def prepare(root: Path, sizes: list[str], seed: int = VALIDATION_SEED) -> list[Path]:
+    """The degraded scene folders (``root/data/<scene>-<size>``), rendered and synthesised with scene and
+    synthesis ``seed`` where missing.
 
-    An unknown size raises NimbusError before anything is written."""
+    An unknown size, or a ``root`` whose scenes were made with another seed, raises NimbusError before anything
+    is written."""
     from nimbus.data.builtin import get_size, write_builtin
     from nimbus.data.io import load_scene
+    from nimbus.errors import NimbusError
+    from nimbus.data.transforms import read_json
     from weather_synth.config import protocol_config
     from weather_synth.dataset import degrade_scene
     from weather_synth.settings import ALL_SETTING_NAMES, parse_setting
 
     for size in sizes:
         get_size(size)
+    for manifest in sorted((root / "scenes").glob("*/manifest.json")):
+        made = read_json(manifest).get("seed")
+        if made != seed:
+            raise NimbusError(f"{manifest.parent} was made with seed {made}, not {seed}; give another --root for "
+                              f"seed {seed}")
     out = []
     for size in sizes:
         for scene in SCENES:
             clean, data = root / "scenes" / f"{scene}-{size}", root / "data" / f"{scene}-{size}"
             if not (clean / "manifest.json").is_file():
-                write_builtin(scene, clean, size, seed=VALIDATION_SEED, overwrite=True, progress=False)
+                write_builtin(scene, clean, size, seed=seed, overwrite=True, progress=False)
             if not all((data / s / "manifest.json").is_file() for s in ALL_SETTING_NAMES):
                 degrade_scene(load_scene(clean), data, [parse_setting(s) for s in ALL_SETTING_NAMES],
-                              protocol_config("onerestore", VALIDATION_SEED), overwrite=True, progress=False,
+                              protocol_config("onerestore", seed), overwrite=True, progress=False,
                               source=f"builtin:{scene}:{size}")
             out.append(data)
     return out

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from benchmark.auto_thresholds import VARIANTS, Cell, choose, derive_haze, derive_particles, variant_overrides
+from benchmark.auto_thresholds import (VARIANTS, Cell, choose, derive_haze, derive_particles, margin, shortfall,
+                                       variant_overrides)
 from nimbus.config_set import apply_overrides
 from nimbus.nimbusgs.auto import haze_present, particle_thresholds
 from nimbus.nimbusgs.config import preset
@@ -16,41 +17,81 @@ def cell(name, plm_gain, asym, energy, dark=0.05, corr=0.0, csm_gain=-1.0):
     return Cell("scene-tiny", name, psnr, dark, corr, {True: (asym, energy), False: (asym, energy)})
 
 
-def test_particle_rule_declares_every_needed_cell_with_fewest_false_declarations():
+def test_particle_rule_declares_every_needed_cell_and_gives_away_the_fewest_db():
+    # R and S need PLM (>= 0.3 dB); "a" gains 0.1 dB, below the bar but still worth taking; "b" loses 0.5 dB.
     cells = [cell("R", 2.0, 0.30, 0.0010), cell("S", 0.4, 0.22, 0.0008), cell("a", 0.1, 0.25, 0.0002),
              cell("b", -0.5, 0.10, 0.0020), cell("c", 0.0, 0.35, 0.0030)]
     hazy = np.zeros(len(cells), bool)
-    (a, e), false, kept, declared = derive_particles(cells, hazy, False, (0.5, 0.0005))
-    assert not kept and declared.tolist() == [True, True, False, False, True] and false == 1
-    # Half-way to the next lower value seen: asymmetry between 0.10 and 0.22, energy between 0.0002 and 0.0008.
-    assert a == 0.16 and e == 0.0005
-    # Thresholds that already do as well are kept.
-    assert derive_particles(cells, hazy, False, (0.2, 0.0006))[:3] == ((0.2, 0.0006), 1, True)
+    choice, declared = derive_particles(cells, hazy, False, (0.5, 0.0005))
+    assert not choice.kept and declared.tolist() == [True, True, True, False, True]
+    assert choice.shortfall == 0.0 and choice.false == 2
+    # Half-way between b's asymmetry and the lowest declared one; energy does not constrain (below every value).
+    a, e = choice.thresholds
+    assert a == 0.16 and e == 0.0
+    # The count-the-false-declarations rule would have left "a" out (threshold 0.16 / 0.0005): 0.1 dB given away.
+    assert shortfall(np.array([2.0, 0.4, 0.1, -0.5, 0.0]), np.array([True, True, False, False, True])) == \
+        pytest.approx(0.1)
+
+
+def test_particle_rule_never_misses_a_needed_cell_even_at_a_cost():
+    # Declaring R (needs PLM) forces declaring "b" too (higher evidence, loses 1 dB): the rule pays it.
+    cells = [cell("R", 0.35, 0.20, 0.001), cell("b", -1.0, 0.30, 0.001), cell("c", -1.0, 0.05, 0.001)]
+    choice, declared = derive_particles(cells, np.zeros(3, bool), False, (0.5, 0.0))
+    assert declared.tolist() == [True, True, False]
+    assert choice.shortfall == pytest.approx(1.0) and choice.false == 1
+
+
+def test_of_equally_good_rules_the_widest_margin_wins_and_a_current_rule_on_the_edge_is_replaced():
+    cells = [cell("R", 1.0, 0.50, 0.001), cell("b", -0.5, 0.10, 0.001), cell("c", 0.0, 0.49, 0.001)]
+    hazy = np.zeros(3, bool)
+    # "c" (no gain either way) may go either way at no cost: half-way 0.10 .. 0.49 (0.295, rounded to 0.29) has
+    # the wider margin than half-way 0.49 .. 0.50.
+    choice, declared = derive_particles(cells, hazy, False, (0.4999, 0.0))
+    assert declared.tolist() == [True, False, True] and choice.thresholds[0] == 0.29
+    assert not choice.kept and choice.margin > 0.5
+    # The current thresholds, as good and well inside the same gap, are kept.
+    choice, _ = derive_particles(cells, hazy, False, (0.25, 0.0))
+    assert choice.kept and choice.thresholds == (0.25, 0.0)
+
+
+def test_margin_is_how_far_thresholds_move_before_a_decision_changes():
+    values = np.array([0.2, 0.6])
+
+    def declare(t):
+        return values >= t[0]
+
+    assert margin(declare, (0.5,), np.array([1.0])) == pytest.approx(0.1, abs=1e-6)
+    assert margin(declare, (0.5,), np.array([0.5])) == pytest.approx(0.2, abs=1e-6)  # in units of the spread
+    assert margin(declare, (0.6,), np.array([1.0])) == pytest.approx(0.0, abs=1e-6)  # on a value: no margin
 
 
 def test_particle_rule_uses_only_its_group():
-    cells = [cell("H+R", 1.0, 0.12, 0.0003), cell("R", 1.0, 0.30, 0.0010), cell("b", 0.0, 0.20, 0.0009)]
+    cells = [cell("H+R", 1.0, 0.12, 0.0003), cell("R", 1.0, 0.30, 0.0010), cell("b", -0.2, 0.20, 0.0009)]
     hazy = np.array([True, False, False])
-    (a, e), _, _, declared = derive_particles(cells, hazy, True, (0.35, 0.0005))
+    choice, declared = derive_particles(cells, hazy, True, (0.35, 0.0005))
+    (a, e) = choice.thresholds
     assert declared.tolist() == [True] and a <= 0.12 and e <= 0.0003
-    (a, e), false, _, declared = derive_particles(cells, hazy, False, (0.35, 0.0005))
-    assert declared.tolist() == [True, False] and false == 0 and 0.20 < a <= 0.30
+    choice, declared = derive_particles(cells, hazy, False, (0.35, 0.0005))
+    assert declared.tolist() == [True, False] and choice.false == 0 and 0.20 < choice.thresholds[0] <= 0.30
 
 
 def test_haze_rule_keeps_current_thresholds_when_they_are_as_good():
     cells = [cell("H", 0.0, 0, 0, dark=0.30, csm_gain=3.0), cell("R", 0.0, 0, 0, dark=0.05, csm_gain=-2.0),
              cell("thin", 0.0, 0, 0, dark=0.12, corr=0.8, csm_gain=0.5)]
-    assert derive_haze(cells, (0.2, 0.5)) == ((0.2, 0.5), 0, True)
-    (d, c), false, kept = derive_haze(cells, (0.4, 0.5))  # misses H and the thin veil
-    assert not kept and false == 0
+    choice = derive_haze(cells, (0.2, 0.5))
+    assert choice.kept and choice.thresholds == (0.2, 0.5) and choice.false == 0 and choice.shortfall == 0
+    choice = derive_haze(cells, (0.4, 0.5))  # misses H and the thin veil
+    assert not choice.kept and choice.false == 0
+    d, c = choice.thresholds
     assert [haze_present(x.dark_median, x.dark_depth_corr, d, c) for x in cells] == [True, False, True]
 
 
 def test_choose_refuses_rules_that_miss_a_needed_cell():
-    needed = np.array([True, False, False])
+    gains = np.array([1.0, -0.2, -0.3])
     values = np.array([0.1, 0.5, 0.9])
-    t, false, kept = choose(needed, lambda t: values >= t[0], [(0.7,), (0.3,), (0.0,)], (0.7,))
-    assert t == (0.0,) and false == 2 and not kept
+    choice = choose(gains, lambda t: values >= t[0], [(0.7,), (0.3,), (0.0,)], (0.7,), np.array([1.0]))
+    assert choice.thresholds == (0.0,) and choice.false == 2 and not choice.kept
+    assert choice.shortfall == pytest.approx(0.5)
 
 
 def test_variants_force_auto_one_way_whatever_the_evidence():
@@ -77,6 +118,32 @@ def test_an_unknown_size_is_one_line_and_writes_nothing(argv, tmp_path, monkeypa
         assert run_cli(main, argv) == 2
         assert "unknown scene size 'huge'" in capsys.readouterr().err
         assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("seeds", ["0", "1,0", "-3", "2,2"])
+def test_the_benchmarks_own_scene_seed_is_refused_for_validation(seeds, tmp_path, monkeypatch, capsys):
+    from benchmark import auto_thresholds
+    from nimbus.cli_util import run_cli
+
+    monkeypatch.chdir(tmp_path)
+    assert run_cli(auto_thresholds.main, ["--scene-seeds", seeds]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"--scene-seeds {seeds!r}: give distinct integers >= 1" in err[0]
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_root_made_with_another_scene_seed_is_refused_before_anything_is_written(tmp_path, capsys):
+    from benchmark import auto_thresholds
+    from nimbus.cli_util import run_cli
+
+    made = tmp_path / "val" / "seed-2" / "scenes" / "garden-tiny"  # a seed-1 scene where seed 2's belong
+    made.mkdir(parents=True)
+    (made / "manifest.json").write_text('{"seed": 1}')
+    before = sorted(tmp_path.rglob("*"))
+    assert run_cli(auto_thresholds.main, ["--root", str(tmp_path / "val"), "--scene-seeds", "2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "was made with seed 1, not 2" in err[0]
+    assert sorted(tmp_path.rglob("*")) == before
 
 
 def test_checks_report_each_default_against_its_runs_and_skip_haze_only_checks_on_clear_cells(capsys):
@@ -123,9 +190,26 @@ def test_gains_and_evidence_are_means_over_the_training_seeds(tmp_path):
 
 
 @pytest.mark.parametrize("text", ["", "a", "1,1", "-1", "0,,x"])
-def test_bad_seeds_are_one_clear_error(text):
+def test_bad_training_seeds_are_one_clear_error(text):
     from benchmark.auto_thresholds import parse_seeds
     from nimbus.errors import NimbusError
 
     with pytest.raises(NimbusError, match="--seeds"):
         parse_seeds(text)
+
+
+def test_cells_of_each_scene_seed_are_apart(tmp_path, monkeypatch):
+    from benchmark import auto_thresholds
+
+    def fake_prepare(root, sizes, seed):
+        data = root / "data" / "garden-tiny"
+        (data / "H").mkdir(parents=True)
+        (data / "H" / "manifest.json").write_text("{}")
+        return [data]
+
+    monkeypatch.setattr(auto_thresholds, "prepare", fake_prepare)
+    cells = auto_thresholds.cell_folders(tmp_path, ["tiny"], (1, 2))
+    assert [(d, s) for d, s, _ in cells] == [("garden-tiny@1", "clean"), ("garden-tiny@1", "H"),
+                                             ("garden-tiny@2", "clean"), ("garden-tiny@2", "H")]
+    assert cells[0][2] == tmp_path / "seed-1" / "scenes" / "garden-tiny"
+    assert cells[3][2] == tmp_path / "seed-2" / "data" / "garden-tiny" / "H"
