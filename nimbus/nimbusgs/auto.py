@@ -37,8 +37,9 @@ come out about half as large.  A hazy scene is therefore judged by its own pair,
 ``auto_particle_threshold_haze`` and ``auto_particle_energy_haze``.  The pairs are
 derived on validation scenes, never on the benchmark's (``python -m
 benchmark.auto_thresholds``): every validation scene and setting where forcing PLM on
-gains >= 0.3 dB PSNR on the test views must be declared, and among the thresholds that
-do so, those with the fewest declarations where it gains less are kept.
+gains >= 0.3 dB PSNR on their held-out views must be declared, and among the thresholds
+that do so, those that give away the fewest dB over all the validation cells are kept, with
+the widest margin among equals.  Both energy bars came out 0 (asymmetry alone decides).
 
 GGS is enabled when either degradation is present (it compensates the gradients the
 degradation attenuates); a clean scene trains as 3DGS with the NimbusGS loss.
