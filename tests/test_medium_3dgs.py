@@ -103,8 +103,8 @@ def small_scene():
 
 
 def test_renders_the_clean_image_and_the_medium_extras_for_any_camera(small_scene, tmp_path):
-    runner = Runner("medium-3dgs", small_scene, _cfg(iterations="4"), tmp_path / "run", progress=False,
-                    device=torch.device("cpu"))
+    runner = Runner("medium-3dgs", small_scene, _cfg(iterations="4", far_from_medium="false"), tmp_path / "run",
+                    progress=False, device=torch.device("cpu"))
     method = runner.method
     assert isinstance(method, Method)
     camera = method.train_views[0].camera
@@ -119,6 +119,24 @@ def test_renders_the_clean_image_and_the_medium_extras_for_any_camera(small_scen
     torch.testing.assert_close(white["degraded"], black["degraded"])
     torch.testing.assert_close(out["degraded"], black["rgb"] * out["transmission"] / out["alpha"].clamp_min(1e-6)[
         ..., None] + out["backscatter"], atol=1e-5, rtol=1e-4)
+
+
+def test_the_clean_render_shows_the_mediums_far_light_where_no_gaussian_covers(small_scene, tmp_path):
+    runner = Runner("medium-3dgs", small_scene, _cfg(iterations="4"), tmp_path / "run", progress=False,
+                    device=torch.device("cpu"))
+    method = runner.method
+    assert method.cfg.far_from_medium
+    camera = method.train_views[0].camera
+    with torch.no_grad():
+        black = method.render(camera, background=torch.zeros(3))
+        white = method.render(camera, background=torch.ones(3))
+        b = method.medium.values()["backscatter"]
+        plain = Runner("medium-3dgs", small_scene, _cfg(iterations="4", far_from_medium="false"), tmp_path / "r2",
+                       progress=False, device=torch.device("cpu")).method.render(camera, background=torch.zeros(3))
+    assert (black["alpha"] < 0.5).any()  # some of the sky is uncovered in this view
+    torch.testing.assert_close(white["rgb"], black["rgb"])  # the background colour is not used
+    torch.testing.assert_close(black["rgb"], plain["rgb"] + (1 - black["alpha"])[..., None] * b)
+    torch.testing.assert_close(black["degraded"], plain["degraded"])  # what training sees is the same
 
 
 def test_state_dict_round_trip_and_resume(small_scene, tmp_path):

@@ -73,6 +73,14 @@ class MediumConfig(TrainConfig):
         Warm-up: the medium is held at its initial values for the first ``medium_from`` iterations
         (0: learned from the start; the presets hold it for the first third of the run).  Stretched with the
         schedule when ``iterations`` changes.
+    far_from_medium : bool
+        What the clean render shows where no Gaussian covers a pixel: the medium's far light ``B`` (true: the
+        ``background`` colour is then not used), as the degraded render does, or the ``background`` colour
+        (false, as 3DGS).  The loss sees only the degraded render, which explains an uncovered sky by ``B``, so
+        the Gaussians need not cover it; with the background there, a clear sky scored as black.  Chosen on
+        the seed-1 validation scenes at tiny size (street and garden; physical H, R, S, H+R and onerestore H;
+        training is the same either way): PSNR +0.79 dB on average (street R +6.0, S +5.9; the other eight
+        -1.38 to +0.54), SSIM better on all ten.
     """
 
     lr_medium: float = 0.05
@@ -80,6 +88,7 @@ class MediumConfig(TrainConfig):
     init_sigma_bs: tuple[float, float, float] = (0.1, 0.1, 0.1)
     init_backscatter: tuple[float, float, float] = (0.5, 0.5, 0.5)
     medium_from: int = 0
+    far_from_medium: bool = True
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         **TrainConfig.LIMITS,
@@ -211,9 +220,10 @@ class Medium3DGS(GaussianSplatting):
         bg = self.background if background is None else background
         out = super().render(camera, sh_degree, torch.zeros(3, device=self.device))
         foreground = out["rgb"]
-        parts = compose_medium(foreground, out["depth"], out["alpha"],
-                               **self.medium.values(frozen=not self._learning_medium))
-        return {**out, "rgb": foreground + (1.0 - out["alpha"])[..., None] * bg, **parts}
+        medium = self.medium.values(frozen=not self._learning_medium)
+        parts = compose_medium(foreground, out["depth"], out["alpha"], **medium)
+        far = medium["backscatter"].detach() if self.cfg.far_from_medium else bg
+        return {**out, "rgb": foreground + (1.0 - out["alpha"])[..., None] * far, **parts}
 
     def loss(self, step: int, view_index: int, render: dict, gt: Tensor) -> tuple[Tensor, Tensor]:
         """The 3DGS loss between the degraded render and the input view."""
