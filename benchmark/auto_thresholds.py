@@ -103,9 +103,10 @@ def cell_folders(root: Path, sizes: list[str], seeds: Sequence[int] = SCENE_SEED
     ``root/seed-N``), each scene's clean views and seven settings."""
     out = []
     for seed in seeds:
-        for data in prepare(root / f"seed-{seed}", sizes, seed):
+        seed_root = root / f"seed-{seed}"
+        for data in prepare(seed_root, sizes, seed):
             label = f"{data.name}@{seed}"
-            out.append((label, CLEAN, data.parent.parent / "scenes" / data.name))
+            out.append((label, CLEAN, seed_root / "scenes" / data.name))
             out += [(label, s.name, s) for s in sorted(data.iterdir()) if (s / "manifest.json").is_file()]
     return out
 

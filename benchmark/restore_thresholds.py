@@ -31,8 +31,8 @@ def prepare(root: Path, sizes: list[str], seed: int = VALIDATION_SEED) -> list[P
     is written."""
     from nimbus.data.builtin import get_size, write_builtin
     from nimbus.data.io import load_scene
-    from nimbus.errors import NimbusError
     from nimbus.data.transforms import read_json
+    from nimbus.errors import NimbusError
     from weather_synth.config import protocol_config
     from weather_synth.dataset import degrade_scene
     from weather_synth.settings import ALL_SETTING_NAMES, parse_setting

@@ -24,7 +24,9 @@ Gaussians' colour composited on black (``F = alpha J_surface``), the composite i
       = alpha [J_surface e^(-sigma_attn z) + B (1 - e^(-sigma_bs z))] + (1 - alpha) B
 
 which is the model above for a covered pixel and ``B`` for an empty one, continuous in between.
-The background colour (``background``, ``random_background``) only enters the clean render.
+The clean render shows ``F + (1 - alpha) B`` too (``far_from_medium``, the default): the medium's far
+light where no Gaussian covers; with ``far_from_medium=false`` the background colour (``background``,
+``random_background``) is there instead, as in 3DGS.  The degraded render never uses the background.
 
 Extras of :meth:`Medium3DGS.render` (any camera; ``view_index`` changes nothing, the medium is the
 scene's): ``transmission`` (``alpha exp(-sigma_attn z)``, [H, W, 3]: the share of the surface's light
@@ -216,7 +218,8 @@ class Medium3DGS(GaussianSplatting):
     def render(self, camera: Camera, sh_degree: int | None = None, background: Tensor | None = None,
                view_index: int | None = None) -> dict:
         """The clean render of ``camera`` (``rgb``, ``depth``, ``alpha``, ``meta``) and the medium's extras
-        ``transmission``, ``backscatter`` and ``degraded`` (see the module docstring)."""
+        ``transmission``, ``backscatter`` and ``degraded`` (see the module docstring); ``background`` is used
+        only with ``far_from_medium=false``."""
         bg = self.background if background is None else background
         out = super().render(camera, sh_degree, torch.zeros(3, device=self.device))
         foreground = out["rgb"]
