@@ -11,6 +11,18 @@ is what is scored.  ``sigma_attn, sigma_bs = softplus(raw) >= 0`` and ``B = sigm
 are learned with their own Adam (``lr_medium``), after an optional warm-up (``medium_from``) in which
 the medium stays at its initial values while the Gaussians settle.
 
+Initial medium (``medium_init``)
+--------------------------------
+``data`` (the default) starts the medium where the training views put it, by the dark-channel prior
+NimbusGS's CSM is seeded with (:func:`estimate_medium`): a transmission ``T`` (the median over views
+of the median of He et al.'s ``1 - dark / A``) over a typical depth ``z`` (the median over views of
+the sparse points' median z-depth) gives ``sigma_attn = sigma_bs = -ln T / z`` (grey); ``B`` and the
+``A`` of ``1 - dark / A`` are He et al.'s airlight over the whole capture (the colour where the dark channel
+is brightest in any view).  ``fixed`` starts at ``init_sigma_attn``,
+``init_sigma_bs`` and ``init_backscatter``.  From a fixed small medium the Gaussians bake the haze
+into their colours during the warm-up and the medium never recovers it (validation, seed-1 tiny
+garden under physical haze: sigma 0.11 learned per extent unit for about 0.8 in the data).
+
 Depth convention
 ----------------
 ``z`` is the expected camera z-depth of the Gaussians, ``depth / alpha``, in units of the training
@@ -40,14 +52,17 @@ import dataclasses
 from dataclasses import dataclass
 from typing import ClassVar
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from nimbus.config_validation import Limit, at_least, between, positive
+from nimbus.config_validation import Limit, at_least, between, one_of, positive
 from nimbus.data import Camera
 from nimbus.losses import photometric_loss
 from nimbus.methods.gs3d import GaussianSplatting
+from nimbus.nimbusgs.airlight import dark_channel_hard, estimate_airlight
+from nimbus.restore import pixel_sizes
 from nimbus.train.config import PRESETS as GS_PRESETS
 from nimbus.train.config import TrainConfig, lookup_preset, rescale_step
 
@@ -56,6 +71,11 @@ from nimbus.train.config import TrainConfig, lookup_preset, rescale_step
 ALPHA_EPS = 1e-6
 #: The medium's parameters, in their (and the optimiser's, and the checkpoint's) order.
 MEDIUM_PARAMS = ("sigma_attn", "sigma_bs", "backscatter")
+#: ``medium_init`` choices (module docstring).
+MEDIUM_INITS = ("data", "fixed")
+#: Bounds of the data-driven transmission estimate (as NimbusGS's): a clear view never claims
+#: ``T = 1`` (a zero sigma, softplus's -inf), a dark one never claims an opaque medium.
+INIT_TRANSMISSION_RANGE = (0.2, 0.99)
 
 
 @dataclass(frozen=True)
@@ -66,11 +86,18 @@ class MediumConfig(TrainConfig):
     ----------
     lr_medium : float
         Adam learning rate of the medium's raw parameters (softplus inputs of the sigmas, logit of B).
+    medium_init : str
+        ``data``: the initial medium estimated from the training views (:func:`estimate_medium`; the
+        ``init_*`` fields are then used only where the views give no estimate: no sparse point in front of
+        any camera); ``fixed``: the ``init_*`` fields.  See the module docstring.  Chosen on the seed-1
+        validation scenes at tiny size (street and garden; physical H, R, S, H+R and onerestore H; 10 cells),
+        against ``fixed``: PSNR better on all ten (+0.08 to +2.17 dB, mean +1.06), SSIM on seven (the other
+        three -0.002 to -0.017).
     init_sigma_attn, init_sigma_bs : tuple of 3 float
         Initial attenuation / backscatter coefficients (R, G, B; > 0: softplus never reaches 0), per
-        unit of the training frame (extent 1: the radius of the camera centres).
+        unit of the training frame (extent 1: the radius of the camera centres), with ``medium_init=fixed``.
     init_backscatter : tuple of 3 float
-        Initial backscatter colour B (R, G, B in (0, 1)).
+        Initial backscatter colour B (R, G, B in (0, 1)), with ``medium_init=fixed``.
     medium_from : int
         Warm-up: the medium is held at its initial values for the first ``medium_from`` iterations
         (0: learned from the start; the presets hold it for the first third of the run).  Stretched with the
@@ -86,6 +113,7 @@ class MediumConfig(TrainConfig):
     """
 
     lr_medium: float = 0.05
+    medium_init: str = "data"
     init_sigma_attn: tuple[float, float, float] = (0.1, 0.1, 0.1)
     init_sigma_bs: tuple[float, float, float] = (0.1, 0.1, 0.1)
     init_backscatter: tuple[float, float, float] = (0.5, 0.5, 0.5)
@@ -95,6 +123,7 @@ class MediumConfig(TrainConfig):
     LIMITS: ClassVar[dict[str, Limit]] = {
         **TrainConfig.LIMITS,
         "lr_medium": at_least(0, note="0 freezes the medium"),
+        "medium_init": one_of(*MEDIUM_INITS),
         "init_sigma_attn": positive(scalar=True, note="R, G, B per extent unit"),
         "init_sigma_bs": positive(scalar=True, note="R, G, B per extent unit"),
         "init_backscatter": between(0, 1, lo_open=True, hi_open=True, scalar=True, note="R, G, B"),
@@ -159,23 +188,83 @@ def _inverse_softplus(x: Tensor) -> Tensor:
     return x + torch.log(-torch.expm1(-x))  # log(exp(x) - 1), without overflow for large x
 
 
+@dataclass(frozen=True)
+class MediumEstimate:
+    """The data-driven initial medium (:func:`estimate_medium`): ``transmission`` (median T of the views),
+    ``depth`` (typical z-depth of the sparse points, frame units), ``sigma`` (``-ln T / depth``, per frame unit),
+    ``backscatter`` (R, G, B) and ``points_used``."""
+
+    transmission: float
+    depth: float
+    sigma: float
+    backscatter: tuple[float, float, float]
+    points_used: int
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@torch.no_grad()
+def estimate_medium(images: list[Tensor], cameras: list[Camera], points) -> MediumEstimate | None:
+    """The medium the views imply (module docstring), or None when no sparse point lies in front of a camera.
+
+    Parameters
+    ----------
+    images : list of Tensor [H, W, 3] in [0, 1]
+        The training views (the dark channel's patch follows their size, as ``restore-3dgs``'s).
+    cameras : list of Camera
+        One per image, in the frame the sigma is to be per unit of.
+    points : array (N, 3)
+        The sparse points, in that frame.
+    """
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    darks, airlights, depths, used = [], [], [], 0
+    for img, cam in zip(images, cameras):
+        x = img.float()
+        patch = pixel_sizes(*x.shape[:2])[0].patch
+        darks.append(dark_channel_hard(x, patch))
+        airlights.append(estimate_airlight(x, patch).cpu())
+        if len(pts):
+            uv, z = cam.project(pts)
+            seen = (z > 1e-6) & np.all(np.isfinite(uv), axis=1)
+            seen &= (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+            if seen.any():
+                depths.append(float(np.median(z[seen])))
+                used += int(seen.sum())
+    if not depths:
+        return None
+    # He et al.'s airlight over the whole capture: the colour where the dark channel is brightest in any view (a
+    # view that sees no far light would put B at its own brightest surface).
+    b = max(airlights, key=lambda a: float(a.min()))
+    floor = b.min().clamp_min(1e-3).to(darks[0].device)
+    t = float(np.clip(np.median([float((1 - d / floor).clamp(0, 1).median()) for d in darks]),
+                      *INIT_TRANSMISSION_RANGE))
+    depth = float(np.median(depths))
+    return MediumEstimate(t, depth, float(-np.log(t) / depth), tuple(float(v) for v in b), used)
+
+
 class HomogeneousMedium:
     """The scene's medium: raw parameters (``softplus`` -> sigmas, ``sigmoid`` -> B) and their Adam.
 
     Parameters
     ----------
     config : MediumConfig
-        Initial values (broadcast to R, G, B) and the learning rate.
+        The learning rate (and, without ``initial``, the initial values).
     device : torch.device
+    initial : dict or None
+        Initial ``sigma_attn``, ``sigma_bs`` (> 0) and ``backscatter`` (in (0, 1)), each a float or R, G, B;
+        None: the config's ``init_*`` fields.
     """
 
-    def __init__(self, config: MediumConfig, device: torch.device) -> None:
+    def __init__(self, config: MediumConfig, device: torch.device, initial: dict | None = None) -> None:
         def rgb(value) -> Tensor:
             return torch.as_tensor(value, dtype=torch.float32, device=device).expand(3).clone()
 
-        raw = {"sigma_attn": _inverse_softplus(rgb(config.init_sigma_attn)),
-               "sigma_bs": _inverse_softplus(rgb(config.init_sigma_bs)),
-               "backscatter": torch.logit(rgb(config.init_backscatter))}
+        init = initial or {"sigma_attn": config.init_sigma_attn, "sigma_bs": config.init_sigma_bs,
+                           "backscatter": config.init_backscatter}
+        raw = {"sigma_attn": _inverse_softplus(rgb(init["sigma_attn"])),
+               "sigma_bs": _inverse_softplus(rgb(init["sigma_bs"])),
+               "backscatter": torch.logit(rgb(init["backscatter"]))}
         self.raw = {k: raw[k].requires_grad_(True) for k in MEDIUM_PARAMS}
         self.optimizer = torch.optim.Adam(
             [{"params": [self.raw[k]], "lr": config.lr_medium, "name": k} for k in MEDIUM_PARAMS])
@@ -212,8 +301,21 @@ class Medium3DGS(GaussianSplatting):
 
     def __init__(self, scene, config: MediumConfig, **kwargs) -> None:
         super().__init__(scene, config, **kwargs)
-        self.medium = HomogeneousMedium(config, self.device)
+        initial, self._pending = None, []
+        if config.medium_init == "data":
+            est = estimate_medium(self.train_images, [v.camera for v in self.train_views], scene.points)
+            if est is None:
+                self._pending.append(("medium_init", {"source": "fixed", "why": "no sparse point in front of a "
+                                                      "training camera: the init_* fields are used"}))
+            else:
+                initial = {"sigma_attn": est.sigma, "sigma_bs": est.sigma, "backscatter": est.backscatter}
+                self._pending.append(("medium_init", {"source": "data", **est.to_dict()}))
+        self.medium = HomogeneousMedium(config, self.device, initial)
         self._learning_medium = config.medium_from == 0
+
+    def setup_events(self) -> list[tuple[str, dict]]:
+        events, self._pending = self._pending, []
+        return events
 
     def render(self, camera: Camera, sh_degree: int | None = None, background: Tensor | None = None,
                view_index: int | None = None) -> dict:
@@ -268,4 +370,5 @@ class Medium3DGS(GaussianSplatting):
     def load_state_dict(self, state: dict) -> None:
         super().load_state_dict(state)
         self.medium.load_state_dict(state["extra"]["medium"])
+        self._pending = []  # the initial medium was logged by the interrupted run
         self._learning_medium = self.iteration >= self.cfg.medium_from
