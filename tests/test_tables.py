@@ -11,6 +11,7 @@ import pytest
 from benchmark.cli import TOOL
 from benchmark.store import ResultsStore, load_results
 from benchmark.tables.comparison import tables as comparison_tables
+from benchmark.tables.margins import tables as margins_tables
 from benchmark.tables.model import rank_marks
 from benchmark.tables.results import ABLATION_OURS, COMPARISON_OURS
 from benchmark.tables.summary import summary_table
@@ -183,6 +184,44 @@ def test_seeds_are_averaged_and_mixed_protocols_refused(tmp_path):
         comparison_tables(load_results(tmp_path / "b"))
 
 
+def test_margins_say_where_ours_wins_and_by_how_much(store_root):
+    store = ResultsStore(store_root)
+    # A method that beats nimbus on garden haze (PSNR +1, SSIM +0.05, LPIPS -0.05) and has nothing else.
+    store.append({**records()[0], "cell_id": "garden-tiny_H_medium_tiny_s0", "method": "medium", "psnr": 22.0,
+                  "ssim": 0.75, "lpips": 0.15})
+    [t], skipped = margins_tables(load_results(store_root), ["nimbus", "3dgs"])
+    assert skipped == [] and t.groups == ["3dgs", "restore+3dgs", "medium"]
+    assert [r.label for r in t.blocks[0].rows] == ["H", "R", "All"]
+    h, r, everything = (t.row(x).values for x in ("H", "R", "All"))
+    # Haze, both scenes: nimbus 21 / 23 against 3dgs 18 / 20 (SSIM +0.2, LPIPS 0.2 lower), restore 17 / 19.
+    assert h[("3dgs", "d_psnr")] == pytest.approx(3.0) and h[("3dgs", "wins")] == "2/2"
+    assert h[("3dgs", "d_ssim")] == pytest.approx(0.2) and h[("3dgs", "d_lpips")] == pytest.approx(0.2)
+    assert h[("restore+3dgs", "d_psnr")] == pytest.approx(4.0)
+    # A loss is negative on every metric and not won.
+    assert h[("medium", "d_psnr")] == pytest.approx(-1.0) and h[("medium", "wins")] == "0/1"
+    assert h[("medium", "d_ssim")] == pytest.approx(-0.05) and h[("medium", "d_lpips")] == pytest.approx(-0.05)
+    # Rain: nimbus has garden only, so street (3dgs alone) is not compared; restore has no rain cell.
+    assert r[("3dgs", "d_psnr")] == pytest.approx(1.0) and r[("3dgs", "wins")] == "1/1"
+    assert ("restore+3dgs", "d_psnr") not in r
+    assert everything[("3dgs", "d_psnr")] == pytest.approx(7 / 3) and everything[("3dgs", "wins")] == "3/3"
+    assert everything[("medium", "wins")] == "0/1"
+    lines = list(csv.DictReader(io.StringIO(to_csv([t]))))
+    medium_h = next(x for x in lines if x["weather"] == "H" and x["other"] == "medium")
+    assert (medium_h["won"], medium_h["scenes"], float(medium_h["d_psnr"])) == ("0", "1", -1.0)
+    # Nothing to compare: no nimbus cell, or nimbus alone.
+    only = ResultsStore(store_root / "only")
+    for rec in records():
+        if rec["method"] in ("3dgs",):
+            only.append(rec)
+    assert margins_tables(load_results(store_root / "only"))[0] == []
+    alone = ResultsStore(store_root / "alone")
+    for rec in records():
+        if rec["method"] == "nimbus":
+            alone.append(rec)
+    tabs, skipped = margins_tables(load_results(store_root / "alone"))
+    assert tabs == [] and "no method besides nimbus" in skipped[0]
+
+
 def test_summary_table_counts_errors(store_root):
     text = summary_table(load_results(store_root), ["nimbus", "3dgs"])
     lines = text.splitlines()
@@ -198,10 +237,12 @@ def test_tables_command(store_root, tmp_path, capsys):
     assert run_cli(TOOL.run, ["tables", "--root", str(store_root), "--out", str(out),
                               "--parquet", str(tmp_path / "r.parquet")]) == 0
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["comparisons.csv", "comparisons.md", "paper_H.md", "paper_H.tex", "paper_R.md", "paper_R.tex",
-                     "weather_H.md", "weather_H.tex", "weather_R.md", "weather_R.tex"]
+    assert names == ["comparisons.csv", "comparisons.md", "margins.csv", "margins.md", "margins.tex", "paper_H.md",
+                     "paper_H.tex", "paper_R.md", "paper_R.tex", "weather_H.md", "weather_H.tex", "weather_R.md",
+                     "weather_R.tex"]
     md = (out / "comparisons.md").read_text()
     assert md.index("### haze (H)") < md.index("### the paper's reported numbers on the paper's data (tab:dehaze")
+    assert md.index("### rain (R)") < md.index("against each other method")  # the margins follow the comparisons
     paper_tex = (out / "paper_H.tex").read_text()
     assert "NOT results of this benchmark" in paper_tex and r"\first{21.84}" in paper_tex
     rows = _latex_rows(paper_tex)

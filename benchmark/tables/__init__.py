@@ -7,6 +7,7 @@ module                          role
 :mod:`.writer`                  the one writer: LaTeX, Markdown, long-format CSV; files into a folder
 :mod:`.results`                 what the tables read from the results store (finished cells, protocols, means)
 :mod:`.comparison`              per-weather method comparisons (``weather_<W>``), ours and the paper's
+:mod:`.margins`                 Ours against each other method per setting (``margins``): where it wins
 :mod:`.ablation`                the ablation tables (``ablation_*``), ours and the paper's
 :mod:`.runtime`                 complexity / runtime (``runtime``), ours and the paper's
 :mod:`.summary`                 the plain-text summary ``nimbus-bench run`` prints
