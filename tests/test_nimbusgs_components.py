@@ -591,3 +591,48 @@ def test_named_methods_are_registered_with_their_settings():
     spec = get_method("nimbus-no-plm")
     assert spec.load() is NimbusGS and spec.name == "nimbus-no-plm"
     assert get_method("nimbus").load() is NimbusGS
+
+
+# --- per-view density (view_density) ----------------------------------------------------------------------------
+def _medium(view_density: bool, views: int = 3):
+    from nimbus.nimbusgs.degradation import Medium
+
+    cfg = apply_overrides(preset("tiny"), {"view_density": str(view_density).lower(), "airlight": "constant"})
+    box = Box((-50.0,) * 3, (50.0,) * 3)
+    return Medium(cfg, box, 0.7, 4.0, torch.tensor([0.7, 0.8, 0.9]), seed=0, device=torch.device("cpu"),
+                  views=views)
+
+
+def test_view_density_raises_each_views_transmission_to_its_factor():
+    medium = _medium(True)
+    with torch.no_grad():
+        medium.view_log_density.copy_(torch.tensor([math.log(2.0), 0.0, math.log(0.25)]))
+    # Factors are normalised to a geometric mean of 1: they cannot trade with the field's own scale.
+    factors = torch.stack([medium.view_density(v) for v in range(3)])
+    torch.testing.assert_close(factors.log().sum(), torch.tensor(0.0), atol=1e-6, rtol=0)
+    torch.testing.assert_close(factors[0] / factors[1], torch.tensor(2.0))
+    cam = _camera()
+    rays = camera_rays(cam)
+    render = {"depth": torch.full((cam.height, cam.width), 3.0), "alpha": torch.ones(cam.height, cam.width)}
+    desc = torch.tensor([0.7, 0.8, 0.9, 0.5, 0.5, 0.5])
+    t_field, p_field = medium.forward(rays, render, desc)  # no training view: the field alone
+    assert 0.05 < float(t_field.detach().mean()) < 0.95
+    for v in range(3):
+        t, p = medium.forward(rays, render, desc, view_index=v)
+        torch.testing.assert_close(t, t_field ** factors[v], rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(p, (1 - t) * torch.tensor([0.7, 0.8, 0.9]), rtol=1e-5, atol=1e-6)
+    # The factor is learned: the transmission's gradient reaches it, and it survives the state round trip.
+    t, _ = medium.forward(rays, render, desc, view_index=0)
+    t.sum().backward()
+    assert medium.view_log_density.grad is not None and float(medium.view_log_density.grad.abs().sum()) > 0
+    copy = _medium(True)
+    copy.load_state_dict(medium.state_dict())
+    torch.testing.assert_close(copy.view_log_density, medium.view_log_density.detach())
+
+
+def test_view_density_off_is_the_field_alone():
+    medium = _medium(False)
+    assert medium.view_log_density is None and medium.view_density(0) is None
+    assert "view_density" not in {g["name"] for g in medium.param_groups()}
+    assert medium.state_dict()["view_log_density"] is None
+    _medium(False).load_state_dict(medium.state_dict())

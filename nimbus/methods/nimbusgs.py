@@ -160,7 +160,7 @@ class NimbusGS(GaussianSplatting):
         t0 = c.init_transmission or min(max(self.haze.transmission_estimate, INIT_TRANSMISSION_RANGE[0]),
                                         INIT_TRANSMISSION_RANGE[1])
         return Medium(c, box or self._content_box(means), t0, self._mean_ray_length(means),
-                      self.descriptors[:, :3].mean(0), self.seed, self.device)
+                      self.descriptors[:, :3].mean(0), self.seed, self.device, views=len(self.train_views))
 
     @torch.no_grad()
     def _dehaze_initial_colours(self) -> None:
@@ -198,7 +198,7 @@ class NimbusGS(GaussianSplatting):
             return {"clean": clean, "T": torch.ones_like(clean[..., :1]), "P": torch.zeros_like(clean), "con": clean}
         t0 = time.perf_counter()
         ext = self._extinction_image(self.train_views[vi].camera) if self.medium.field is None else None
-        T, P = self.medium.forward(self._rays_for(vi), render, self.descriptors[vi], ext, self.train_images[vi])
+        T, P = self.medium.forward(self._rays_for(vi), render, self.descriptors[vi], ext, self.train_images[vi], vi)
         self.timing["csm_forward_s"] += time.perf_counter() - t0
         return {"clean": clean, "T": T, "P": P, "con": compose(clean, T, P)}
 
@@ -365,7 +365,8 @@ class NimbusGS(GaussianSplatting):
         """``components`` and ``nimbus``: the decision record (:meth:`components_record`), the schedule,
         ``time_s`` (wall seconds spent on the auto evidence ``evidence_s``, the medium's forward pass
         ``csm_forward_s`` -- its backward runs inside the training step --, ``ggs_s`` and ``plm_refresh_s``),
-        the residual store's size and refresh counts, and beta statistics (1/m, per world unit)."""
+        the residual store's size and refresh counts, beta statistics (1/m, per world unit) and, with
+        ``view_density``, each training view's density factor."""
         c = self.cfg
         store = self.particulate.store if self.particulate is not None else None
         rec = self.components_record()
@@ -381,6 +382,9 @@ class NimbusGS(GaussianSplatting):
                 beta = beta / self.frame.scale
             rec["beta_max"] = float(beta.max()) if beta is not None else None
             rec["beta_mean"] = float(beta.mean()) if beta is not None else None
+            if self.medium.view_log_density is not None:  # view_density: each training view's factor, by name
+                rec["view_density"] = {v.name: round(float(self.medium.view_density(i).detach()), 4)
+                                       for i, v in enumerate(self.train_views)}
         return {"components": self.components, "nimbus": rec}
 
     # --- state --------------------------------------------------------------------------

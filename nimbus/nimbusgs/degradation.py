@@ -90,7 +90,7 @@ class Medium:
     """
 
     def __init__(self, config: NimbusConfig, box: Box, transmission: float, ray_length: float, airlight: Tensor,
-                 seed: int, device: torch.device) -> None:
+                 seed: int, device: torch.device, views: int = 0) -> None:
         c = config
         self.cfg = config
         self.box = box
@@ -110,6 +110,11 @@ class Medium:
         else:
             self.ext_log_scale = torch.tensor(math.log(scale), device=device, requires_grad=True)
             groups.append({"params": [self.ext_log_scale], "lr": c.lr_extinction, "name": "extinction"})
+        #: Per training view, the log of its density factor (``view_density``), else None.
+        self.view_log_density: Tensor | None = None
+        if c.view_density and views > 0:
+            self.view_log_density = torch.zeros(views, device=device, requires_grad=True)
+            groups.append({"params": [self.view_log_density], "lr": c.lr_extinction, "name": "view_density"})
         self.airlight = make_airlight(c.airlight, airlight, c.airlight_hidden, c.airlight_sh_degree,
                                       c.airlight_input, compiled=march_backend(c) != "torch").to(device)
         groups.append({"params": list(self.airlight.parameters()), "lr": c.lr_airlight, "name": "airlight"})
@@ -118,8 +123,16 @@ class Medium:
         self.initial_density_scale = scale
 
     # --- T and P ---------------------------------------------------------------------------
+    def view_density(self, view_index: int | None) -> Tensor | None:
+        """The density factor ``s_v`` of training view ``view_index`` (``view_density``), or None."""
+        if self.view_log_density is None or view_index is None:
+            return None
+        logs = self.view_log_density
+        return torch.exp(logs[view_index] - logs.mean())
+
     def forward(self, rays: ViewRays, render: dict, descriptor: Tensor,
-                extinction_image: Tensor | None = None, image: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                extinction_image: Tensor | None = None, image: Tensor | None = None,
+                view_index: int | None = None) -> tuple[Tensor, Tensor]:
         """``(T [H, W, 1], P [H, W, 3])`` of one view.
 
         ``render`` has the view's ``depth`` and ``alpha`` (the march ends at the surface); ``descriptor``
@@ -137,9 +150,14 @@ class Medium:
             res = march(self.field, rays.origin, rays.dirs, t_start, t_end, c.ray_samples, march_backend(c))
         else:
             res = gaussian_extinction_map(extinction_image, alpha, t_start, t_end)
-        a = self._airlight(rays, res.transmission, descriptor, image)
+        transmission, scatter = res.transmission, res.scatter
+        factor = self.view_density(view_index)
+        if factor is not None:  # T ** s and 1 - T ** s, from the optical depth
+            tau = -torch.log(transmission.clamp_min(1e-30)) * factor
+            transmission, scatter = torch.exp(-tau), -torch.expm1(-tau)
+        a = self._airlight(rays, transmission, descriptor, image)
         h, w = rays.height, rays.width
-        return res.transmission.reshape(h, w, 1), (res.scatter[:, None] * a).reshape(h, w, 3)
+        return transmission.reshape(h, w, 1), (scatter[:, None] * a).reshape(h, w, 3)
 
     def _airlight(self, rays: ViewRays, transmission: Tensor, descriptor: Tensor, image: Tensor | None) -> Tensor:
         """A [P, 3] at every pixel; the network's evaluated per ``airlight_stride`` block and upsampled."""
@@ -204,6 +222,8 @@ class Medium:
                 "optimizer": self.optimizer.state_dict(), "airlight": self.airlight.state_dict(),
                 "field": self.field.state_dict() if self.field is not None else None,
                 "ext_log_scale": self.ext_log_scale.detach().clone() if self.ext_log_scale is not None else None,
+                "view_log_density": (self.view_log_density.detach().clone() if self.view_log_density is not None
+                                     else None),
                 "initial_transmission": float(self.initial_transmission)}
 
     def load_state_dict(self, state: dict) -> None:
@@ -212,6 +232,9 @@ class Medium:
         if state["ext_log_scale"] is not None:
             with torch.no_grad():
                 self.ext_log_scale.copy_(state["ext_log_scale"])
+        if state.get("view_log_density") is not None and self.view_log_density is not None:
+            with torch.no_grad():
+                self.view_log_density.copy_(state["view_log_density"])
         self.airlight.load_state_dict(state["airlight"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.initial_transmission = state["initial_transmission"]
