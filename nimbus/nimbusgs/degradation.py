@@ -138,7 +138,8 @@ class Medium:
         ``render`` has the view's ``depth`` and ``alpha`` (the march ends at the surface); ``descriptor``
         and ``image`` (the degraded input [H, W, 3]; needed by ``airlight_input="pixel"``) condition the
         airlight; ``extinction_image`` [H, W] is the alpha-blended per-Gaussian extinction (only for
-        ``extinction="gaussian"``).
+        ``extinction="gaussian"``); ``view_index`` (a training view) applies its density factor
+        (``view_density``: ``T ** s_v``), None the field alone.
         """
         c = self.cfg
         depth, alpha = render["depth"], render["alpha"]
