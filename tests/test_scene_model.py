@@ -155,3 +155,17 @@ def test_a_mask_stored_as_0_and_1_reads_as_valid_where_1(tmp_path):
     raw[:, 3:] = 1
     cv2.imwrite(str(tmp_path / "m.png"), raw)
     np.testing.assert_array_equal(read_mask(tmp_path / "m.png"), raw > 0)
+
+
+def test_project_seen_keeps_points_in_front_and_inside_the_image():
+    cam = Camera.look_at((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, -1.0, 0.0), 16, 12, 60)
+    pts = np.array([[0.0, 0.0, 2.0],     # straight ahead: seen
+                    [0.0, 0.0, -2.0],    # behind: not seen
+                    [50.0, 0.0, 2.0],    # far outside the image
+                    [0.0, 0.0, 0.0],     # at the centre: z = 0, uv not finite
+                    [0.0, 0.0, 0.005]])  # in front, but nearer than a near plane of 0.01
+    uv, z, seen = cam.project_seen(pts)
+    np.testing.assert_allclose(uv[0], (cam.cx, cam.cy))
+    np.testing.assert_allclose(z[:2], (2.0, -2.0))
+    assert seen.tolist() == [True, False, False, False, True]
+    assert cam.project_seen(pts, near=0.01)[2].tolist() == [True, False, False, False, False]

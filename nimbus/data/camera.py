@@ -203,6 +203,15 @@ class Camera:
             uv = np.stack([self.fx * p[:, 0] / z + self.cx, self.fy * p[:, 1] / z + self.cy], axis=-1)
         return uv, z
 
+    def project_seen(self, points: np.ndarray, near: float = 1e-6) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`project`, and which points the camera sees (N,) bool: in front of it (``z > near``) and
+        inside the image."""
+        uv, z = self.project(points)
+        with np.errstate(invalid="ignore"):
+            seen = (z > near) & np.all(np.isfinite(uv), axis=1)
+            seen &= (uv[:, 0] >= 0) & (uv[:, 0] < self.width) & (uv[:, 1] >= 0) & (uv[:, 1] < self.height)
+        return uv, z, seen
+
     def to_dict(self) -> dict:
         return {
             "width": self.width, "height": self.height,

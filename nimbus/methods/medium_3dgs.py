@@ -225,9 +225,7 @@ def estimate_medium(images: list[Tensor], cameras: list[Camera], points) -> Medi
         darks.append(dark_channel_hard(x, patch))
         airlights.append(estimate_airlight(x, patch).cpu())
         if len(pts):
-            uv, z = cam.project(pts)
-            seen = (z > 1e-6) & np.all(np.isfinite(uv), axis=1)
-            seen &= (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+            _, z, seen = cam.project_seen(pts)
             if seen.any():
                 depths.append(float(np.median(z[seen])))
                 used += int(seen.sum())
@@ -235,8 +233,8 @@ def estimate_medium(images: list[Tensor], cameras: list[Camera], points) -> Medi
         return None
     # He et al.'s airlight over the whole capture: the colour where the dark channel is brightest in any view (a
     # view that sees no far light would put B at its own brightest surface).
-    b = max(airlights, key=lambda a: float(a.min()))
-    floor = b.min().clamp_min(1e-3).to(darks[0].device)
+    b = max(airlights, key=lambda a: float(a.min()))  # estimate_airlight bounds it to [0.02, 0.98]
+    floor = b.min().to(darks[0].device)
     t = float(np.clip(np.median([float((1 - d / floor).clamp(0, 1).median()) for d in darks]),
                       *INIT_TRANSMISSION_RANGE))
     depth = float(np.median(depths))

@@ -142,9 +142,7 @@ def haze_evidence(images: list[Tensor], cameras: list[Camera], points: np.ndarra
             t_est.append(float((1 - dark / a.min().clamp_min(1e-3)).clamp(0, 1).median()))
         if len(pts) == 0:
             continue
-        uv, z = cam.project(pts)
-        ok = (z > 1e-6) & np.all(np.isfinite(uv), axis=1)
-        ok &= (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        uv, z, ok = cam.project_seen(pts)
         idx = np.nonzero(ok)[0]
         if len(idx) > MAX_POINTS_PER_VIEW:
             idx = rng.choice(idx, MAX_POINTS_PER_VIEW, replace=False)

@@ -188,9 +188,7 @@ class Medium:
         pts = points.detach().double().cpu()
         taus = torch.full((len(cameras), pts.shape[0]), float("nan"), dtype=torch.float64)
         for k, cam in enumerate(cameras):
-            uv, z = cam.project(pts.numpy())
-            seen = torch.as_tensor((z > self.cfg.near_plane) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width)
-                                   & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height))
+            seen = torch.as_tensor(cam.project_seen(pts.numpy(), self.cfg.near_plane)[2])
             origin = torch.as_tensor(cam.center, dtype=torch.float64)
             vec = pts - origin
             dist = vec.norm(dim=1).clamp_min(1e-12)
