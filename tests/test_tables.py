@@ -222,6 +222,33 @@ def test_margins_say_where_ours_wins_and_by_how_much(store_root):
     assert tabs == [] and "no method besides nimbus" in skipped[0]
 
 
+def test_margins_seed_spread(tmp_path, store_root):
+    """With several training seeds, ±seed is the sd over seeds of the per-seed ΔPSNR; one seed: no column."""
+    assert "d_psnr_seed_sd" not in [c.key for c in margins_tables(load_results(store_root))[0][0].columns]
+    store = ResultsStore(tmp_path / "seeds")
+    recs = records(seeds=(0, 1, 2))  # every method's PSNR rises by 1 per seed: constant margins
+    for r in recs:
+        store.append(r)
+    # "noisy" on garden haze: nimbus 21 + k against 20 + k + e_k, e = (0.5, -0.5, 0): margins 0.5, 1.5, 1.0.
+    for k, e in enumerate((0.5, -0.5, 0.0)):
+        store.append({**recs[0], "cell_id": f"garden-tiny_H_noisy_tiny_s{k}", "method": "noisy", "seed": k,
+                      "psnr": 20.0 + k + e})
+    # "few" has one seed only: no spread for it anywhere.
+    store.append({**recs[0], "cell_id": "garden-tiny_H_few_tiny_s0", "method": "few", "psnr": 19.0})
+    [t], _ = margins_tables(load_results(tmp_path / "seeds"), ["nimbus", "3dgs"])
+    assert t.columns[-1].key == "d_psnr_seed_sd"
+    h = t.row("H").values
+    assert h[("noisy", "d_psnr")] == pytest.approx(1.0) and h[("noisy", "d_psnr_seed_sd")] == pytest.approx(0.5)
+    assert h[("3dgs", "d_psnr_seed_sd")] == pytest.approx(0.0, abs=1e-9)
+    assert h[("few", "d_psnr_seed_sd")] is None
+    lines = list(csv.DictReader(io.StringIO(to_csv([t]))))
+    noisy = next(x for x in lines if x["weather"] == "H" and x["other"] == "noisy")
+    few = next(x for x in lines if x["weather"] == "H" and x["other"] == "few")
+    assert (noisy["seeds"], float(noisy["d_psnr_seed_sd"])) == ("3", 0.5)
+    assert (few["seeds"], few["d_psnr_seed_sd"]) == ("1", "")
+    assert "±seed" in to_markdown(t) and "/ sqrt(n)" in t.notes[0]
+
+
 def test_summary_table_counts_errors(store_root):
     text = summary_table(load_results(store_root), ["nimbus", "3dgs"])
     lines = text.splitlines()

@@ -5,8 +5,12 @@ default's seven), then ``All`` (every scene and setting); a column group per oth
 store.  In each group, over the scenes both methods have (means over seeds, as the per-weather
 tables): ``ΔPSNR`` and ``ΔSSIM`` (Ours minus the other), ``ΔLPIPS`` (the other minus Ours), so
 that a positive value is Ours better on all three, and ``won`` (scenes where Ours' PSNR is the
-higher, of those both have; the CSV has ``won`` and ``scenes`` as numbers).  The per-weather tables hold the values; this one answers "where
-does NimbusGS win, and where does a baseline" without subtracting by hand.  "Ours" is
+higher, of those both have; the CSV has ``won`` and ``scenes`` as numbers).  When the store holds two or
+more training seeds of both methods on every scene of a row, ``±seed`` is the sample standard deviation,
+over those seeds, of the row's ΔPSNR computed seed by seed: how far the margin moves with nothing but
+the training seed, so a one-seed margin inside it is not a finding (the mean over n seeds moves by about
+``±seed / sqrt(n)``; the CSV has ``seeds``).  At tiny size one seed's PSNR moves by 0.1 to 0.5 dB.  The column is there only when some row has it.  The per-weather tables hold the values; this
+one answers "where does NimbusGS win, and where does a baseline" without subtracting by hand.  "Ours" is
 :data:`~benchmark.tables.results.COMPARISON_OURS` (the method a user runs, components by ``auto``).
 There is no paper counterpart (the paper's tables are other scenes).
 """
@@ -27,16 +31,34 @@ COLUMNS = (
     Column("d_lpips", "ΔLPIPS", r"$\Delta$LPIPS", 3),
     Column("wins", "won", "won", align="center"),
 )
+#: The seed spread of ΔPSNR, shown when some row has two or more seeds of both methods.
+SEED_SD = Column("d_psnr_seed_sd", "±seed", r"$\pm$seed", 2)
 #: Sign of each metric's difference so that positive is Ours better.
 SIGN = {"psnr": 1.0, "ssim": 1.0, "lpips": -1.0}
 ALL = "All"
 CSV = LongFormat("margins.csv", "Ours against each other method, per setting, long format",
-                 ("weather", "other", "d_psnr", "d_ssim", "d_lpips", "won", "scenes", "ssim_protocol", "lpips_net"),
+                 ("weather", "other", "d_psnr", "d_ssim", "d_lpips", "won", "scenes", "d_psnr_seed_sd", "seeds",
+                  "ssim_protocol", "lpips_net"),
                  group_field="other")
 
 
+def _seed_spread(pairs: list[tuple[dict, dict]]) -> tuple[float | None, int]:
+    """Sample sd over the seeds both have in every pair of the per-seed mean PSNR margin, and that seed count.
+
+    ``pairs`` holds ``(ours, other)`` maps ``seed -> PSNR`` (one per scene and setting); None below two seeds.
+    """
+    common = set.intersection(*(set(a) & set(b) for a, b in pairs)) if pairs else set()
+    if len(common) < 2:
+        return None, len(common)
+    per_seed = [np.mean([a[k] - b[k] for a, b in pairs]) for k in sorted(common)]
+    return float(np.std(per_seed, ddof=1)), len(common)
+
+
 def _margins(pairs: list[tuple[dict, dict]]) -> tuple[dict[str, float | str | None], dict[str, int]]:
-    """The group's values and CSV fields for ``(ours, other)`` metric dicts of the scenes both have."""
+    """The group's values and CSV fields for ``(ours, other)`` metric dicts of the scenes both have.
+
+    Each dict also holds ``seeds``: ``seed -> PSNR`` of the cell's finished seeds.
+    """
     if not pairs:
         return {}, {}
     values: dict[str, float | str | None] = {}
@@ -45,7 +67,9 @@ def _margins(pairs: list[tuple[dict, dict]]) -> tuple[dict[str, float | str | No
         values[f"d_{k}"] = float(np.mean(diffs)) if len(diffs) == len(pairs) else None
     won = sum(1 for a, b in pairs if finite(a["psnr"]) and finite(b["psnr"]) and a["psnr"] > b["psnr"])
     values["wins"] = f"{won}/{len(pairs)}"
-    return values, {"won": won, "scenes": len(pairs)}
+    sd, seeds = _seed_spread([(a["seeds"], b["seeds"]) for a, b in pairs])
+    values[SEED_SD.key] = sd
+    return values, {"won": won, "scenes": len(pairs), "seeds": seeds}
 
 
 def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]]:
@@ -64,7 +88,7 @@ def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]
     means: dict[tuple[str, str, str], dict] = {}
     for weather, sub in ok.groupby("weather", sort=False):
         for (m, s), (vals, _) in scene_means(sub, "method_label").items():
-            means[(weather, m, s)] = vals
+            means[(weather, m, s)] = dict(vals, seeds=_seed_psnr(sub, m, s))
     weathers = ordered(ok["weather"], family_order())
 
     def pairs(weather_set: list[str], other: str) -> list[tuple[dict, dict]]:
@@ -80,14 +104,26 @@ def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]
             if fields:
                 row.group_fields[other] = fields
         rows.append(row)
+    spread = any(finite(r.values.get((o, SEED_SD.key))) for r in rows for o in others)
+    columns = (*COLUMNS, SEED_SD) if spread else COLUMNS
     title = f"{COMPARISON_OURS.label} against each other method"
     notes = [f"Over the scenes both methods have (means over seeds): ΔPSNR and ΔSSIM = Ours minus the other, ΔLPIPS "
              f"= the other minus Ours, so positive is Ours better; won = scenes where Ours' PSNR is the higher. "
-             f"{ALL} = every scene and setting. SSIM protocol: {ssim_protocol}; LPIPS: {lp}; {COMPARISON_OURS.note()}"]
-    return [Table("margins", "margins", title, columns=COLUMNS, groups=others, blocks=[Block(rows)],
+             f"{ALL} = every scene and setting. "
+             + ("±seed = sample sd over the training seeds (both methods, every scene of the row) of the ΔPSNR "
+                "computed seed by seed (a one-seed margin moves by about this much; the mean over n seeds by this / "
+                "sqrt(n)). " if spread else "")
+             + f"SSIM protocol: {ssim_protocol}; LPIPS: {lp}; {COMPARISON_OURS.note()}"]
+    return [Table("margins", "margins", title, columns=columns, groups=others, blocks=[Block(rows)],
                   lead=("Setting",), notes=notes, label="tab:nimbus-bench-margins", caption_lead="Margins: ",
                   wide=True, what=f"ours: {title}", csv=CSV,
                   fields={"ssim_protocol": ssim_protocol, "lpips_net": lp})], []
+
+
+def _seed_psnr(frame, method_label: str, scene_label: str) -> dict[int, float]:
+    """``seed -> PSNR`` of one method's finished cells on one scene (records of one setting)."""
+    g = frame[(frame["method_label"] == method_label) & (frame["scene_label"] == scene_label)]
+    return {int(k): float(v) for k, v in zip(g["seed"], g["psnr"]) if finite(v)}
 
 
 def paper() -> dict[str, Table]:
