@@ -5,7 +5,7 @@
     python -m benchmark.auto_thresholds --report [--root DIR] [--cache DIR]
 
 On the validation scenes (the built-in scenes rendered and degraded with each of ``--scene-seeds``,
-1 and 2 unless given, as :mod:`benchmark.restore_thresholds` makes them; the benchmark's cells use
+1 to 4 unless given, as :mod:`benchmark.restore_thresholds` makes them; the benchmark's cells use
 seed 0, and only their held-out test views are ever reported), each scene's
 seven settings and its clean views, trains ``nimbus`` (tiny preset) four times: CSM on or off
 crossed with PLM on or off (GGS on when either is, as ``auto`` does), with the first of
@@ -72,7 +72,7 @@ TRAIN_SEEDS = (0, 1)
 #: A run name's suffix for a training seed other than the first (``csm+plm@s1``).
 SEED_MARK = "@s"
 #: Scene and synthesis seeds of the validation scenes (``--scene-seeds``; the benchmark's data use 0).
-SCENE_SEEDS = (VALIDATION_SEED, VALIDATION_SEED + 1)
+SCENE_SEEDS = tuple(range(VALIDATION_SEED, VALIDATION_SEED + 4))
 #: The setting name of a scene's clean views (``ROOT/scenes/<scene>-<size>``).
 CLEAN = "clean"
 

@@ -1,5 +1,6 @@
 """NimbusGS building blocks against closed forms: scattering, airlight, PLM, GGS, losses, auto evidence, config."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -549,7 +550,14 @@ def test_particles_seen_through_a_veil_are_judged_by_the_haze_pair():
         ta, te = particle_thresholds(cfg, hazy)
         assert ev.present == (ev.asymmetry >= ta and ev.energy >= te)
     assert not evidence(scene + m_clear, scene, False).present
-    assert not evidence(veil(scene) + m_hazy, veil(scene), True).present
+    # Under haze the default pair is met by any evidence (PLM always on: on the validation cells PLM's gain under
+    # haze does not follow the evidence); a pair above a symmetric misfit's statistics leaves it out.
+    symmetric = [residual_tail_counts(veil(scene) + m_hazy, veil(scene))]
+    assert particle_evidence(symmetric, *particle_thresholds(cfg, True), hazy=True).present
+    strict = dataclasses.replace(cfg, auto_particle_threshold_haze=0.14, auto_particle_energy_haze=0.0002)
+    assert not particle_evidence(symmetric, *particle_thresholds(strict, True), hazy=True).present
+    assert particle_evidence([residual_tail_counts(veil(scene + streaks) + m_hazy, veil(scene))],
+                             *particle_thresholds(strict, True), hazy=True).present
 
 
 # --- config and registry --------------------------------------------------------------------
