@@ -9,8 +9,9 @@ higher, of those both have; the CSV has ``won`` and ``scenes`` as numbers).  Whe
 more training seeds of both methods on every scene of a row, ``±seed`` is the sample standard deviation,
 over those seeds, of the row's ΔPSNR computed seed by seed: how far the margin moves with nothing but
 the training seed, so a one-seed margin inside it is not a finding (the mean over n seeds moves by about
-``±seed / sqrt(n)``; the CSV has ``seeds``).  At tiny size one seed's PSNR moves by 0.1 to 0.5 dB.  The column is there only when some row has it.  The per-weather tables hold the values; this
-one answers "where does NimbusGS win, and where does a baseline" without subtracting by hand.  "Ours" is
+``±seed / sqrt(n)``; the CSV has ``seeds``).  At tiny size one seed's PSNR moves by 0.1 to 0.5 dB.  The
+column is there only when some row has it.  The per-weather tables hold the values; this one answers
+"where does NimbusGS win, and where does a baseline" without subtracting by hand.  "Ours" is
 :data:`~benchmark.tables.results.COMPARISON_OURS` (the method a user runs, components by ``auto``).
 There is no paper counterpart (the paper's tables are other scenes).
 """
@@ -87,8 +88,9 @@ def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]
         return [], [f"margins (no method besides {ours} to compare with)"]
     means: dict[tuple[str, str, str], dict] = {}
     for weather, sub in ok.groupby("weather", sort=False):
+        seeds = _seed_psnr(sub)
         for (m, s), (vals, _) in scene_means(sub, "method_label").items():
-            means[(weather, m, s)] = dict(vals, seeds=_seed_psnr(sub, m, s))
+            means[(weather, m, s)] = dict(vals, seeds=seeds[(m, s)])
     weathers = ordered(ok["weather"], family_order())
 
     def pairs(weather_set: list[str], other: str) -> list[tuple[dict, dict]]:
@@ -120,10 +122,11 @@ def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]
                   fields={"ssim_protocol": ssim_protocol, "lpips_net": lp})], []
 
 
-def _seed_psnr(frame, method_label: str, scene_label: str) -> dict[int, float]:
-    """``seed -> PSNR`` of one method's finished cells on one scene (records of one setting)."""
-    g = frame[(frame["method_label"] == method_label) & (frame["scene_label"] == scene_label)]
-    return {int(k): float(v) for k, v in zip(g["seed"], g["psnr"]) if finite(v)}
+def _seed_psnr(frame) -> dict[tuple[str, str], dict[int, float]]:
+    """(method, scene label) -> ``seed -> PSNR`` of the finished cells (records of one setting), grouped as
+    :func:`~benchmark.tables.results.scene_means` groups them."""
+    return {(m, s): {int(k): float(v) for k, v in zip(g["seed"], g["psnr"]) if finite(v)}
+            for (m, s), g in frame.groupby(["method_label", "scene_label"], sort=False)}
 
 
 def paper() -> dict[str, Table]:
