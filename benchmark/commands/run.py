@@ -19,6 +19,7 @@ import warnings
 from benchmark.cell import DEFAULT_PRESET, DEFAULT_SIZE
 from benchmark.grid import (add_run_arguments, build_cells, executor_from_args, options_from_args, split_names,
                             resolve_methods, run_grid, say_failed)
+from nimbus.cli_util import check_seed
 from nimbus.errors import NimbusError
 
 HELP = "run the benchmark grid (scenes x weathers x methods x presets x seeds), resumable, locally or on Dask"
@@ -49,7 +50,9 @@ def _seeds(spec: str) -> list[int]:
         raise NimbusError(f"--seeds expects comma-separated integers, got {spec!r}") from None
     if not seeds:
         raise NimbusError("--seeds is empty; give e.g. --seeds 0,1,2")
-    return seeds
+    if len(set(seeds)) != len(seeds):
+        raise NimbusError(f"--seeds {spec!r} names a seed twice; give each once, e.g. --seeds 0,1,2")
+    return [check_seed(s, "each of --seeds") for s in seeds]
 
 
 def run(args: argparse.Namespace) -> int:
