@@ -10,7 +10,7 @@ Every source returns a z-depth map, float32 (H, W), in scene units, with
     The scene's sparse points projected into the view (nearest point per pixel,
     points hidden behind nearer ones dropped), densified in inverse depth by a
     push-pull pyramid fill, then refined edge-aware with a guided filter
-    (:func:`cv2.ximgproc.guidedFilter`) guided by the image.  Inverse depth is
+    (:func:`nimbus.utils.guided.guided_filter`: OpenCV contrib's, or the same filter without it) guided by the image.  Inverse depth is
     interpolated because it is what varies linearly across a planar surface in
     the image.  Without a mask, sky pixels get the depth of the nearest points
     (SfM has no points there): give sky masks (``sky/``) or use ``onnx``.
@@ -57,6 +57,7 @@ from nimbus.data.camera import Camera
 from nimbus.data.scene import Scene, View
 from nimbus.errors import NimbusError
 from nimbus.utils.fs import cache_root
+from nimbus.utils.guided import guided_filter
 from nimbus.utils.onnx_session import open_image_model
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
@@ -260,7 +261,7 @@ def densify_sparse_depth(camera: Camera, points: np.ndarray, image: np.ndarray |
     if image is not None and hi > lo:
         r = max(1, int(round(config.guided_radius * W)))
         norm = ((dense - lo) / (hi - lo)).astype(np.float32)
-        refined = cv2.ximgproc.guidedFilter(_grey(image), norm, r, config.guided_eps)
+        refined = guided_filter(_grey(image), norm, r, config.guided_eps)
         dense = np.clip(refined, 0, 1) * (hi - lo) + lo
     with np.errstate(divide="ignore"):
         depth = np.where(dense > 0, 1.0 / dense, np.inf).astype(np.float32)

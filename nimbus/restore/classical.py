@@ -5,7 +5,8 @@ Dehazing (He et al., "Single image haze removal using dark channel prior", 2009/
     the input at the brightest 0.1 % of its dark channel (min over RGB and a ``patch``
     window); the transmission is ``t = 1 - omega dark(I / A)`` (``omega`` keeps a little
     haze for depth perception, He: 0.95), refined edge-aware with a guided filter on the
-    input (He et al. 2013; ``cv2.ximgproc.guidedFilter``) or smoothed by a box filter,
+    input (He et al. 2013; ``cv2.ximgproc.guidedFilter``, or the same filter from box means without
+    OpenCV contrib: :mod:`nimbus.utils.guided`) or smoothed by a box filter,
     floored at ``t_min``; then ``J = (I - A) / t + A``.
 
 Particle removal (rain streaks, snow flakes)
@@ -35,6 +36,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from nimbus.nimbusgs.airlight import dark_channel_hard, estimate_airlight
+from nimbus.utils.guided import guided_filter as _guided
 
 #: Transmission refinements of :func:`dehaze`.
 REFINEMENTS = ("box", "guided")
@@ -76,11 +78,9 @@ def box_filter(x: Tensor, window: int) -> Tensor:
 
 
 def guided_filter(guide: Tensor, x: Tensor, radius: int, eps: float) -> Tensor:
-    """``x`` [H, W] filtered edge-aware by the colour ``guide`` [H, W, 3] (He et al. 2013, OpenCV contrib)."""
-    g = np.ascontiguousarray(guide.detach().cpu().numpy(), np.float32)
-    out = cv2.ximgproc.guidedFilter(g, np.ascontiguousarray(x.detach().cpu().numpy(), np.float32),
-                                    max(int(radius), 1), float(eps))
-    return torch.from_numpy(np.asarray(out, np.float32)).to(x.device)
+    """``x`` [H, W] filtered edge-aware by the colour ``guide`` [H, W, 3] (He et al. 2013; :mod:`nimbus.utils.guided`)."""
+    out = _guided(guide.detach().cpu().numpy(), x.detach().cpu().numpy(), radius, eps)
+    return torch.from_numpy(out).to(x.device)
 
 
 @torch.no_grad()
