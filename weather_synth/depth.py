@@ -10,7 +10,7 @@ Every source returns a z-depth map, float32 (H, W), in scene units, with
     The scene's sparse points projected into the view (nearest point per pixel,
     points hidden behind nearer ones dropped), densified in inverse depth by a
     push-pull pyramid fill, then refined edge-aware with a guided filter
-    (:func:`nimbus.utils.guided.guided_filter`: OpenCV contrib's, or the same filter without it) guided by the image.  Inverse depth is
+    (:func:`nimbus.utils.guided.guided_filter`) guided by the image.  Inverse depth is
     interpolated because it is what varies linearly across a planar surface in
     the image.  Without a mask, sky pixels get the depth of the nearest points
     (SfM has no points there): give sky masks (``sky/``) or use ``onnx``.

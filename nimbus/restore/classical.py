@@ -5,8 +5,8 @@ Dehazing (He et al., "Single image haze removal using dark channel prior", 2009/
     the input at the brightest 0.1 % of its dark channel (min over RGB and a ``patch``
     window); the transmission is ``t = 1 - omega dark(I / A)`` (``omega`` keeps a little
     haze for depth perception, He: 0.95), refined edge-aware with a guided filter on the
-    input (He et al. 2013; ``cv2.ximgproc.guidedFilter``, or the same filter from box means without
-    OpenCV contrib: :mod:`nimbus.utils.guided`) or smoothed by a box filter,
+    input (He et al. 2013; :mod:`nimbus.utils.guided`, in float64: OpenCV contrib's float32 one drifts
+    on hazy images) or smoothed by a box filter,
     floored at ``t_min``; then ``J = (I - A) / t + A``.
 
 Particle removal (rain streaks, snow flakes)
