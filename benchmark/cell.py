@@ -389,18 +389,25 @@ def warm_up(options: CellOptions) -> None:
     """Load now what every cell would load on first use: for a process about to train many cells.
 
     torch with the cells' threads, the optimiser machinery (an optimiser's first use imports
-    torch._dynamo, ~3 s) and the compiled kernels: no cell's training time then includes them,
-    and every cell's peak memory is measured over the same loaded baseline.  Best effort: what
-    fails here fails again in the cell, which records why.
+    torch._dynamo, ~3 s) and what the cells' device renders with: on the CPU the compiled
+    kernels, on CUDA gsplat's extension (when gsplat is installed) and not the CPU kernels, which
+    a CUDA cell never calls.  No cell's training time then includes them, and every cell's peak
+    memory is measured over the same loaded baseline.  Best effort: what fails here fails again in
+    the cell, which records why.
     """
     import torch
-
-    from nimbus.kernels import march, raster, train_step
 
     if options.threads:
         torch.set_num_threads(int(options.threads))
     try:
         torch.optim.Adam([torch.zeros(1, requires_grad=True)])
+        if torch.device(options.device or ("cuda" if torch.cuda.is_available() else "cpu")).type == "cuda":
+            from nimbus.render.backends import gsplat
+
+            gsplat.package_available()
+            return
+        from nimbus.kernels import march, raster, train_step
+
         raster.available(warn=False)
         for extension in (march.EXTENSION, train_step.EXTENSION):
             extension.available(warn=False)

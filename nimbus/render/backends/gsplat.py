@@ -19,14 +19,25 @@ from nimbus.render.gaussians import Gaussians
 
 @functools.lru_cache(maxsize=1)
 def package_available() -> bool:
-    """Whether gsplat imports and CUDA is usable (cached per process)."""
+    """Whether gsplat imports, its CUDA extension loads, and CUDA is usable (cached per process).
+
+    gsplat loads (JIT-builds, the first time) its CUDA extension lazily, at its first rasterization;
+    it is loaded here instead, so that a build that fails makes ``auto`` fall back to torch before
+    training rather than crash its first iteration, and so that the load is not timed as training.
+    """
     if not torch.cuda.is_available():
         return False
     try:
         import gsplat  # noqa: F401
     except Exception:
         return False
-    return True
+    try:  # gsplat 1.x: the extension module, None when it cannot be built or loaded
+        from gsplat.cuda._backend import _C
+    except ImportError:  # another layout: the first rasterization will load it
+        return True
+    except Exception:  # noqa: BLE001 - a failed build raises whatever the compiler's wrapper raises
+        return False
+    return _C is not None
 
 
 def rasterize(gaussians: Gaussians, viewmat, K, width, height, sh_degree, background, config, absgrad):
