@@ -419,6 +419,8 @@ def test_cli_resumes_and_prints_the_table(finished, capsys):
     (["run", "--weathers", "fog,X"], "weather"),
     (["run", "--methods", "nope"], "unknown method"),
     (["run", "--seeds", "a"], "--seeds"),
+    (["run", "--seeds", "0,1,0"], "names a seed twice"),
+    (["run", "--seeds", "-1"], "--seeds"),
     (["run", "--executor", "dask"], "--scheduler"),
     (["run", "--jobs", "0"], "--jobs"),
     (["run", "--set", "nofield=1", "--methods", "3dgs"], "unknown setting"),
