@@ -72,3 +72,8 @@ def test_a_flat_guide_gives_the_box_mean():
     src = np.random.default_rng(1).random((20, 30), dtype=np.float32)
     out = guided_filter(np.full((20, 30), 0.5, np.float32), src, 2, 1e-2)
     np.testing.assert_allclose(out, _box64(_box64(src, 5), 5), atol=1e-6)
+
+
+def test_a_guide_of_other_channels_is_refused():
+    with pytest.raises(ValueError, match=r"\[H, W, 3\]"):
+        guided_filter(np.zeros((8, 8, 2), np.float32), np.zeros((8, 8), np.float32), 1, 1e-3)

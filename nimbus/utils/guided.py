@@ -22,7 +22,7 @@ def _box(a: np.ndarray, k: int) -> np.ndarray:
 
 
 def guided_filter(guide: np.ndarray, src: np.ndarray, radius: int, eps: float) -> np.ndarray:
-    """``src`` ``[H, W]`` filtered edge-aware by ``guide`` (``[H, W]`` grey or ``[H, W, C]`` colour) -> float32
+    """``src`` ``[H, W]`` filtered edge-aware by ``guide`` (``[H, W]`` grey or ``[H, W, 3]`` colour) -> float32
     ``[H, W]``; window ``2 radius + 1`` (radius at least 1), regulariser ``eps`` (module docstring)."""
     g = np.ascontiguousarray(guide, np.float64)  # float64 throughout: the variances are small differences
     p = np.ascontiguousarray(src, np.float64)
@@ -33,16 +33,21 @@ def guided_filter(guide: np.ndarray, src: np.ndarray, radius: int, eps: float) -
         a = (_box(g * p, k) - mg * mp) / (_box(g * g, k) - mg * mg + eps)
         b = mp - a * mg
         return (_box(a, k) * g + _box(b, k)).astype(np.float32)
-    c = g.shape[2]
+    if g.ndim != 3 or g.shape[2] != 3:
+        raise ValueError(f"the guide must be [H, W] or [H, W, 3], got {g.shape}")
+    c = 3
     chans = [np.ascontiguousarray(g[..., i]) for i in range(c)]
     mg = [_box(ch, k) for ch in chans]
-    cov = np.empty(p.shape + (c, c), np.float64)
-    for i in range(c):
-        for j in range(i, c):
-            cov[..., i, j] = cov[..., j, i] = _box(chans[i] * chans[j], k) - mg[i] * mg[j]
-        cov[..., i, i] += eps
-    cross = np.stack([_box(chans[i] * p, k) - mg[i] * mp for i in range(c)], -1)
-    a = np.linalg.solve(cov, cross[..., None])[..., 0]
-    b = mp - sum(a[..., i] * mg[i] for i in range(c))
-    return (sum(_box(np.ascontiguousarray(a[..., i]), k) * chans[i] for i in range(c)) + _box(b, k)).astype(np.float32)
+    cross = [_box(chans[i] * p, k) - mg[i] * mp for i in range(c)]
+    a00, a01, a02, a11, a12, a22 = (_box(chans[i] * chans[j], k) - mg[i] * mg[j] + (eps if i == j else 0.0)
+                                    for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)))
+    # each pixel's symmetric 3 x 3 system by its cofactors, element-wise (np.linalg.solve: 10x slower)
+    c00, c01, c02 = a11 * a22 - a12 * a12, a02 * a12 - a01 * a22, a01 * a12 - a02 * a11
+    c11, c12, c22 = a00 * a22 - a02 * a02, a01 * a02 - a00 * a12, a00 * a11 - a01 * a01
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    a = [(c00 * cross[0] + c01 * cross[1] + c02 * cross[2]) / det,
+         (c01 * cross[0] + c11 * cross[1] + c12 * cross[2]) / det,
+         (c02 * cross[0] + c12 * cross[1] + c22 * cross[2]) / det]
+    b = mp - sum(a[i] * mg[i] for i in range(c))
+    return (sum(_box(a[i], k) * chans[i] for i in range(c)) + _box(b, k)).astype(np.float32)
 
