@@ -127,6 +127,16 @@ def test_all_finite():
         y[77_777] = bad
         assert not train_step.all_finite([torch.ones(2), y])
         assert not train_step.all_finite([y[1::2]])  # not contiguous: torch's isfinite
+    assert train_step.all_finite([])
+    assert train_step.all_finite([torch.ones(2, 3)[:, ::2], torch.ones(4, dtype=torch.int64)])
+
+
+def test_all_finite_of_no_cpu_float_tensor_loads_no_library(monkeypatch):
+    # as for a CUDA run's gradients, which are never CPU tensors: the CPU library is not asked for (a CPU
+    # library's build lock once stalled GPU workers)
+    monkeypatch.setattr(train_step.EXTENSION, "available", lambda warn=True: pytest.fail("library asked for"))
+    assert train_step.all_finite([torch.ones(3, dtype=torch.int64), torch.ones(2, 2)[:, ::2]])
+    assert not train_step.all_finite([torch.tensor([[1.0, math.nan], [2.0, 3.0]]).t()])  # not contiguous
 
 
 def test_gaussian_params_step_with_torchs_fused_adam_on_the_cpu():

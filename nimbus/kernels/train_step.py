@@ -85,8 +85,14 @@ def _cpu_float(t: Tensor) -> bool:
 
 def all_finite(tensors: list[Tensor]) -> bool:
     """Whether every element of every tensor is finite: one read pass without temporaries for contiguous CPU
-    float tensors when the library loads, ``torch.isfinite`` for the others."""
-    kernel = [t for t in tensors if _cpu_float(t)] if EXTENSION.available(warn=False) else []
+    float tensors when the library loads, ``torch.isfinite`` for the others, read back once per device (on
+    CUDA one synchronisation a call, not one a tensor; and no CPU library is loaded for CUDA tensors)."""
+    cpu = [t for t in tensors if _cpu_float(t)]
+    kernel = cpu if cpu and EXTENSION.available(warn=False) else []
     if kernel and not torch.ops.nimbus_train_step.all_finite(kernel):
         return False
-    return all(bool(torch.isfinite(t).all()) for t in tensors if not any(t is k for k in kernel))
+    flags: dict[torch.device, list[Tensor]] = {}
+    for t in tensors:
+        if not any(t is k for k in kernel):
+            flags.setdefault(t.device, []).append(torch.isfinite(t).all())
+    return all(bool(torch.stack(f).all()) for f in flags.values())
