@@ -3,6 +3,7 @@
     python -m benchmark.auto_thresholds [--root DIR] [--scene-seeds 1,2] [--sizes tiny] [--cache DIR] [--jobs N]
                                         [--quick] [--checks]
     python -m benchmark.auto_thresholds --report [--root DIR] [--cache DIR]
+    python -m benchmark.auto_thresholds --store ROOT
 
 On the validation scenes (the built-in scenes rendered and degraded with each of ``--scene-seeds``,
 1 to 4 unless given, as :mod:`benchmark.restore_thresholds` makes them; the benchmark's cells use
@@ -41,6 +42,13 @@ block (``airlight_stride=2``), and prints what each default is worth on the vali
 tiny, seven settings), applies the current defaults to their evidence and prints where
 ``auto``'s choice is >= :data:`MIN_GAIN_DB` below the best variant: a report, never an
 input to the thresholds.
+
+``--store ROOT`` trains nothing: it reads a benchmark store (``nimbus-bench run --root ROOT``) that holds
+``nimbus`` and ``nimbus-no-plm`` runs of the same cells (scene, setting, preset, training seed) on validation
+scenes (scene seed >= 1, e.g. ``ROOT/scenes`` and ``ROOT/data`` made by this tool for ``--sizes small``), takes each
+pair as a hazy cell's PLM on / off with CSM on (``auto``'s stage-1 evidence from the ``nimbus`` run's
+``results.json``) and prints the same per-cell table and hazy particle pair.  It is how the pair is derived at a
+size where this tool's four variants per cell cost too much CPU (the small scenes: about half an hour a run).
 
 Each run's figures are kept as JSON under ``--cache`` (a rerun trains only what is missing).
 """
@@ -427,7 +435,7 @@ def report_derivation(cells: list[Cell]) -> None:
     hazy = np.array([haze_present(c.dark_median, c.dark_depth_corr, dark, corr) for c in cells])
     note = (f"{haze.false} cells declared hazy that gain < {MIN_GAIN_DB} dB from CSM, {haze.shortfall:.2f} dB "
             f"given away, margin {haze.margin:.2f}" if haze.false >= 0
-            else "not derived: --quick ran one CSM state per cell")
+            else "not derived: one CSM state per cell (--quick, --store)")
     print(f"haze rule: auto_dark_threshold={dark} auto_depth_corr={corr} "
           f"({'current kept; ' if haze.kept else ''}{note})")
     print("\n".join(_cell_table(cells, hazy)))
@@ -508,6 +516,50 @@ def report_cells(root: Path, sizes: list[str]) -> list[tuple[str, str, Path]]:
     return [(c.data_name, c.weather, data_dir(root, c)) for c in grid]
 
 
+def store_cells(root: Path) -> list[Cell]:
+    """The hazy cells of a benchmark store holding ``nimbus`` and ``nimbus-no-plm`` runs of the same cells
+    (``--store``): each pair's PSNR as PLM on (``csm+plm``) and off (``csm``), and the ``nimbus`` run's stage-1
+    evidence.  Raises NimbusError when the store is missing, holds the benchmark's own scenes (seed 0), or has no
+    pair whose ``nimbus`` run built CSM."""
+    import json
+
+    from benchmark.store import ResultsStore, require_store
+    from nimbus.errors import NimbusError
+
+    require_store(root)
+    for manifest in sorted((root / "scenes").glob("*/manifest.json")):
+        if json.loads(manifest.read_text()).get("seed", 0) == 0:
+            raise NimbusError(f"{manifest.parent} is the benchmark's own scene (seed 0), reported and never tuned "
+                              "on; give a store of validation scenes (seed >= 1)")
+    ok = [r for r in ResultsStore(root).latest().values() if r.get("status") == "ok"]
+    key = ("scene", "size", "weather", "preset", "seed")
+    runs = {((*(r[k] for k in key), json.dumps(r.get("overrides") or {}, sort_keys=True)), r["method"]): r
+            for r in ok}
+    cells = []
+    for (cell, method), on in sorted(runs.items()):
+        off = runs.get((cell, "nimbus-no-plm"))
+        if method != "nimbus" or off is None:
+            continue
+        if not (root / "scenes" / f"{cell[0]}-{cell[1]}" / "manifest.json").is_file():
+            raise NimbusError(f"{root}/scenes/{cell[0]}-{cell[1]} is missing: the store's scene seed cannot be "
+                              "checked (the benchmark's own scenes, seed 0, are never tuned on)")
+        results = root / "runs" / on["cell_id"] / "results.json"
+        try:
+            ev = json.loads(results.read_text())["nimbus"]
+        except (OSError, ValueError, KeyError) as exc:
+            raise NimbusError(f"{results}: no NimbusGS evidence to read ({exc})") from None
+        if "csm" not in on.get("components", []):
+            continue  # auto left the cell haze-free: PLM's gain there is not the hazy pair's
+        haze, part = ev["haze_evidence"], ev["particle_evidence"]
+        cells.append(Cell(f"{cell[0]}-{cell[1]}", cell[2], {"csm+plm": float(on["psnr"]), "csm": float(off["psnr"])},
+                          float(haze["dark_median"]), float(haze["dark_depth_corr"]),
+                          {True: (float(part["asymmetry"]), float(part["energy"]))}))
+    if not cells:
+        raise NimbusError(f"{root} holds no hazy cell with both a nimbus and a nimbus-no-plm run; make them with "
+                          "nimbus-bench run --root ROOT --methods nimbus,nimbus-no-plm --weathers H,H+R,H+S ...")
+    return cells
+
+
 def parse_seeds(text: str, flag: str = "--seeds", least: int = 0) -> list[int]:
     """``--seeds`` (training) or ``--scene-seeds``: distinct integers >= ``least`` (CSM's other state trains with
     the first training seed)."""
@@ -544,7 +596,13 @@ def main(argv: list[str] | None = None) -> int:
                         help="scene and synthesis seeds of the validation scenes, comma-separated, each's scenes "
                         "under ROOT/seed-N (the benchmark's data use 0)")
     parser.add_argument("--report", action="store_true", help="auto on the benchmark's seed-0 cells (report only)")
+    parser.add_argument("--store", default=None, metavar="ROOT",
+                        help="derive the hazy particle pair from a benchmark store's nimbus / nimbus-no-plm runs "
+                        "(trains nothing)")
     args = parser.parse_args(argv)
+    if args.store:
+        report_derivation(store_cells(Path(args.store)))
+        return 0
     root = Path(args.root or ("auto-report" if args.report else "auto-validation"))
     sizes = [s.strip() for s in args.sizes.split(",") if s.strip()]
     from nimbus.data.builtin import get_size

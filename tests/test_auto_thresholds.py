@@ -213,3 +213,59 @@ def test_cells_of_each_scene_seed_are_apart(tmp_path, monkeypatch):
                                              ("garden-tiny@2", "clean"), ("garden-tiny@2", "H")]
     assert cells[0][2] == tmp_path / "seed-1" / "scenes" / "garden-tiny"
     assert cells[3][2] == tmp_path / "seed-2" / "data" / "garden-tiny" / "H"
+
+
+def _store(root, seed=1, pairs=(("H", 19.1, 19.3, ["csm", "plm", "ggs"], 0.03),
+                                ("H+R", 17.5, 16.8, ["csm", "plm", "ggs"], 0.40))):
+    """A benchmark store with a nimbus / nimbus-no-plm pair per setting, as ``nimbus-bench run`` writes one."""
+    import json
+
+    (root / "scenes" / "garden-small").mkdir(parents=True)
+    (root / "scenes" / "garden-small" / "manifest.json").write_text(json.dumps({"seed": seed}))
+    lines = []
+    for setting, on, off, components, asym in pairs:
+        for method, psnr in (("nimbus", on), ("nimbus-no-plm", off)):
+            cid = f"garden-small_{setting}_{method}_fast_s0"
+            lines.append({"cell_id": cid, "status": "ok", "scene": "garden", "size": "small", "weather": setting,
+                          "preset": "fast", "seed": 0, "method": method, "psnr": psnr, "overrides": {},
+                          "components": components if method == "nimbus" else ["csm", "ggs"]})
+            (root / "runs" / cid).mkdir(parents=True)
+            (root / "runs" / cid / "results.json").write_text(json.dumps({"nimbus": {
+                "haze_evidence": {"dark_median": 0.4, "dark_depth_corr": 0.6},
+                "particle_evidence": {"asymmetry": asym, "energy": 0.001}}}))
+    (root / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in lines))
+    return root
+
+
+def test_a_stores_pairs_are_hazy_cells_with_plm_on_and_off(tmp_path):
+    from benchmark.auto_thresholds import store_cells
+
+    cells = store_cells(_store(tmp_path))
+    assert [(c.setting, c.psnr, c.particles[True]) for c in cells] == [
+        ("H", {"csm+plm": 19.1, "csm": 19.3}, (0.03, 0.001)), ("H+R", {"csm+plm": 17.5, "csm": 16.8}, (0.40, 0.001))]
+    assert [round(c.plm_gain(True), 2) for c in cells] == [-0.2, 0.7]
+    # the derivation then declares the H+R cell (a gain >= 0.3 dB) and, at the least cost, not the H one
+    choice, declared = derive_particles(cells, np.array([True, True]), True, (-1.0, 0.0))
+    assert declared.tolist() == [False, True] and choice.shortfall == 0.0
+
+
+def test_a_cell_auto_left_haze_free_is_not_a_hazy_pair(tmp_path):
+    from benchmark.auto_thresholds import store_cells
+
+    cells = store_cells(_store(tmp_path, pairs=(("H", 19.1, 19.3, ["csm", "plm", "ggs"], 0.03),
+                                                ("R", 25.0, 24.0, ["plm"], 0.5))))
+    assert [c.setting for c in cells] == ["H"]
+
+
+@pytest.mark.parametrize("seed, pairs, message", [
+    (0, None, "seed 0"),
+    (1, (), "no hazy cell"),
+])
+def test_a_store_of_the_benchmarks_own_scenes_or_without_pairs_is_refused(seed, pairs, message, tmp_path, capsys):
+    from benchmark.auto_thresholds import main
+    from nimbus.cli_util import run_cli
+
+    root = _store(tmp_path, seed=seed) if pairs is None else _store(tmp_path, seed=seed, pairs=pairs)
+    assert run_cli(main, ["--store", str(root)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
