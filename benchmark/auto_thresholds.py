@@ -88,9 +88,11 @@ CLEAN = "clean"
 _HAZE = {True: {"auto_dark_threshold": "0"}, False: {"auto_dark_threshold": "1", "auto_depth_corr": "1"}}
 _PARTICLES = {
     True: {"auto_particle_threshold": "-1", "auto_particle_energy": "0",
-           "auto_particle_threshold_haze": "-1", "auto_particle_energy_haze": "0"},
+           "auto_particle_threshold_haze": "-1", "auto_particle_energy_haze": "0",
+           "auto_particle_threshold_haze_large": "-1", "auto_particle_energy_haze_large": "0"},
     False: {"auto_particle_threshold": "1", "auto_particle_energy": "1e9",
-            "auto_particle_threshold_haze": "1", "auto_particle_energy_haze": "1e9"},
+            "auto_particle_threshold_haze": "1", "auto_particle_energy_haze": "1e9",
+            "auto_particle_threshold_haze_large": "1", "auto_particle_energy_haze_large": "1e9"},
 }
 #: The four variants, by which components they force on: name -> (csm, plm).
 VARIANTS = {"csm+plm": (True, True), "csm": (True, False), "plm": (False, True), "none": (False, False)}
@@ -426,7 +428,9 @@ def _cell_table(cells: list[Cell], hazy: np.ndarray) -> list[str]:
     return lines
 
 
-def report_derivation(cells: list[Cell]) -> None:
+def report_derivation(cells: list[Cell], large: bool = False) -> None:
+    """Derive and print the haze rule and the particle pairs; ``large``: the cells' views hold at least
+    ``auto_large_view_pixels`` pixels, so the hazy pair derived is the ``_large`` one."""
     from nimbus.nimbusgs.auto import haze_present
     from nimbus.nimbusgs.config import NimbusConfig as C
 
@@ -440,7 +444,8 @@ def report_derivation(cells: list[Cell]) -> None:
           f"({'current kept; ' if haze.kept else ''}{note})")
     print("\n".join(_cell_table(cells, hazy)))
     for group, fields in ((False, ("auto_particle_threshold", "auto_particle_energy")),
-                          (True, ("auto_particle_threshold_haze", "auto_particle_energy_haze"))):
+                          (True, ("auto_particle_threshold_haze" + "_large" * large,
+                                  "auto_particle_energy_haze" + "_large" * large))):
         sub = [c for c, h in zip(cells, hazy) if h == group]
         name = "hazy" if group else "haze-free"
         if not sub:
@@ -601,7 +606,18 @@ def main(argv: list[str] | None = None) -> int:
                         "(trains nothing)")
     args = parser.parse_args(argv)
     if args.store:
-        report_derivation(store_cells(Path(args.store)))
+        from nimbus.data.builtin import get_size
+        from nimbus.nimbusgs.config import NimbusConfig
+
+        cells = store_cells(Path(args.store))
+        pixels = [get_size(c.data.rsplit("-", 1)[1]) for c in cells]
+        large = {p.width * p.height >= NimbusConfig.auto_large_view_pixels for p in pixels}
+        if len(large) > 1:
+            from nimbus.errors import NimbusError
+
+            raise NimbusError(f"{args.store} mixes views below and above auto_large_view_pixels "
+                              f"({NimbusConfig.auto_large_view_pixels}); give one store per side")
+        report_derivation(cells, large=large.pop())
         return 0
     root = Path(args.root or ("auto-report" if args.report else "auto-validation"))
     sizes = [s.strip() for s in args.sizes.split(",") if s.strip()]

@@ -329,7 +329,9 @@ class NimbusGS(GaussianSplatting):
             counts = [residual_tail_counts(valid_image(self.train_images[vi], self.train_masks[vi], con), con, ex)
                       for vi, (con, ex) in enumerate(zip(composites, excesses))]
             # In auto mode use_csm is the haze decision: a hazy scene has its own thresholds.
-            self.particles = particle_evidence(counts, *particle_thresholds(c, self.use_csm), hazy=self.use_csm)
+            pixels = sum(img.shape[0] * img.shape[1] for img in self.train_images) / max(len(self.train_images), 1)
+            self.particles = particle_evidence(counts, *particle_thresholds(c, self.use_csm, pixels),
+                                               hazy=self.use_csm)
             self.use_plm = self.particles.present
             self.use_ggs = self.use_csm or self.use_plm
             if not self.use_plm:

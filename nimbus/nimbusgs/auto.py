@@ -184,13 +184,17 @@ def residual_tail_counts(image: Tensor, composite: Tensor,
     return n_pos, n_neg, energy, r.numel()
 
 
-def particle_thresholds(config, hazy: bool) -> tuple[float, float]:
-    """``(asymmetry, energy)`` thresholds of the particle decision: the haze pair when ``hazy``.
+def particle_thresholds(config, hazy: bool, pixels: float | None = None) -> tuple[float, float]:
+    """``(asymmetry, energy)`` thresholds of the particle decision: the haze pair when ``hazy``, the large-view
+    haze pair when the views hold at least ``auto_large_view_pixels`` pixels (``pixels``: their mean; None: the
+    small-view pair).
 
     ``config`` is a :class:`~nimbus.nimbusgs.config.NimbusConfig` (any object with its
     ``auto_particle_*`` fields).
     """
     if hazy:
+        if pixels is not None and pixels >= config.auto_large_view_pixels:
+            return config.auto_particle_threshold_haze_large, config.auto_particle_energy_haze_large
         return config.auto_particle_threshold_haze, config.auto_particle_energy_haze
     return config.auto_particle_threshold, config.auto_particle_energy
 

@@ -263,6 +263,14 @@ class NimbusConfig(TrainConfig):
         asymmetry of all gains 0.67 dB from PLM (street, seed 4) while another loses 1.00 dB
         (street, seed 1), so the only pair that declares every hazy cell that needs PLM is
         the one that declares them all.
+    auto_large_view_pixels : int
+        Views of at least this many pixels (the mean over the training views) use the
+        ``_large`` haze pair below; smaller ones the pair above, derived on 64 x 48 views
+        (3,072 pixels).  The default lies between that size and the small scenes' 240 x 180
+        (43,200).
+    auto_particle_threshold_haze_large, auto_particle_energy_haze_large : float
+        The haze pair for views of at least ``auto_large_view_pixels``, derived on the small
+        validation cells (``python -m benchmark.auto_thresholds --store``).
 
     The four particle thresholds are derived on validation scenes (scene and synthesis
     seeds 1 to 4, the benchmark's are 0) by ``python -m benchmark.auto_thresholds --quick``:
@@ -335,6 +343,9 @@ class NimbusConfig(TrainConfig):
     auto_particle_energy: float = 0.0
     auto_particle_threshold_haze: float = -1.0
     auto_particle_energy_haze: float = 0.0
+    auto_large_view_pixels: int = 10_000
+    auto_particle_threshold_haze_large: float = -1.0
+    auto_particle_energy_haze_large: float = 0.0
     # outputs
     write_decomposition: bool = True
 
@@ -362,6 +373,8 @@ class NimbusConfig(TrainConfig):
         "auto_dark_threshold": fraction(), "auto_depth_corr": between(-1, 1),
         "auto_particle_threshold": between(-1, 1), "auto_particle_energy": at_least(0),
         "auto_particle_threshold_haze": between(-1, 1), "auto_particle_energy_haze": at_least(0),
+        "auto_large_view_pixels": at_least(1), "auto_particle_threshold_haze_large": between(-1, 1),
+        "auto_particle_energy_haze_large": at_least(0),
     }
 
     def __post_init__(self) -> None:
