@@ -43,7 +43,12 @@ the widest margin among equals.  Both energy bars came out 0 (asymmetry alone de
 On the validation scenes of seeds 1 to 4, one hazy cell without particles (street, seed 4,
 haze only) gains 0.67 dB from PLM at the lowest asymmetry of all 48 hazy cells, so the hazy
 pair that declares every cell in need is the one that declares every hazy scene: under
-haze, PLM is always on (-1, 0); the evidence is still measured and recorded.
+haze, PLM is always on (-1, 0) for such small views; the evidence is still measured and
+recorded.  Views of at least ``auto_large_view_pixels`` use a pair of their own,
+``auto_particle_threshold_haze_large`` and ``auto_particle_energy_haze_large``, derived on
+small (240 x 180) validation cells (``python -m benchmark.auto_thresholds --store``): there
+the haze-only cells lose from PLM and show an asymmetry near 0.03, the hazy mixes gain at
+0.29 to 0.40.
 
 GGS is enabled when either degradation is present (it compensates the gradients the
 degradation attenuates); a clean scene trains as 3DGS with the NimbusGS loss.
