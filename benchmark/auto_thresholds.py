@@ -443,9 +443,9 @@ def report_derivation(cells: list[Cell], large: bool = False) -> None:
     print(f"haze rule: auto_dark_threshold={dark} auto_depth_corr={corr} "
           f"({'current kept; ' if haze.kept else ''}{note})")
     print("\n".join(_cell_table(cells, hazy)))
+    hazy_suffix = "_haze_large" if large else "_haze"
     for group, fields in ((False, ("auto_particle_threshold", "auto_particle_energy")),
-                          (True, ("auto_particle_threshold_haze" + "_large" * large,
-                                  "auto_particle_energy_haze" + "_large" * large))):
+                          (True, ("auto_particle_threshold" + hazy_suffix, "auto_particle_energy" + hazy_suffix))):
         sub = [c for c, h in zip(cells, hazy) if h == group]
         name = "hazy" if group else "haze-free"
         if not sub:
@@ -529,11 +529,12 @@ def store_cells(root: Path) -> list[Cell]:
     import json
 
     from benchmark.store import ResultsStore, require_store
+    from nimbus.data.transforms import read_json
     from nimbus.errors import NimbusError
 
     require_store(root)
     for manifest in sorted((root / "scenes").glob("*/manifest.json")):
-        if json.loads(manifest.read_text()).get("seed", 0) == 0:
+        if read_json(manifest).get("seed", 0) == 0:
             raise NimbusError(f"{manifest.parent} is the benchmark's own scene (seed 0), reported and never tuned "
                               "on; give a store of validation scenes (seed >= 1)")
     ok = [r for r in ResultsStore(root).latest().values() if r.get("status") == "ok"]
@@ -548,13 +549,13 @@ def store_cells(root: Path) -> list[Cell]:
         if not (root / "scenes" / f"{cell[0]}-{cell[1]}" / "manifest.json").is_file():
             raise NimbusError(f"{root}/scenes/{cell[0]}-{cell[1]} is missing: the store's scene seed cannot be "
                               "checked (the benchmark's own scenes, seed 0, are never tuned on)")
+        if "csm" not in on.get("components", []):
+            continue  # auto left the cell haze-free: PLM's gain there is not the hazy pair's
         results = root / "runs" / on["cell_id"] / "results.json"
         try:
             ev = json.loads(results.read_text())["nimbus"]
         except (OSError, ValueError, KeyError) as exc:
             raise NimbusError(f"{results}: no NimbusGS evidence to read ({exc})") from None
-        if "csm" not in on.get("components", []):
-            continue  # auto left the cell haze-free: PLM's gain there is not the hazy pair's
         haze, part = ev["haze_evidence"], ev["particle_evidence"]
         cells.append(Cell(f"{cell[0]}-{cell[1]}", cell[2], {"csm+plm": float(on["psnr"]), "csm": float(off["psnr"])},
                           float(haze["dark_median"]), float(haze["dark_depth_corr"]),

@@ -401,7 +401,9 @@ def warm_up(options: CellOptions) -> None:
         torch.set_num_threads(int(options.threads))
     try:
         torch.optim.Adam([torch.zeros(1, requires_grad=True)])
-        if torch.device(options.device or ("cuda" if torch.cuda.is_available() else "cpu")).type == "cuda":
+        from nimbus.methods.base import default_device
+
+        if (torch.device(options.device) if options.device else default_device()).type == "cuda":
             from nimbus.render.backends import gsplat
 
             gsplat.package_available()

@@ -560,7 +560,6 @@ def test_particles_seen_through_a_veil_are_judged_by_the_haze_pair():
                              *particle_thresholds(strict, True), hazy=True).present
 
 
-
 def test_the_hazy_particle_pair_depends_on_the_view_size():
     cfg = dataclasses.replace(preset("tiny"), auto_particle_threshold_haze=-1.0, auto_particle_energy_haze=0.0,
                               auto_large_view_pixels=10_000, auto_particle_threshold_haze_large=0.2,
@@ -571,6 +570,7 @@ def test_the_hazy_particle_pair_depends_on_the_view_size():
     # the haze-free pair does not depend on the size
     assert particle_thresholds(cfg, False, 64 * 48) == particle_thresholds(cfg, False, 240 * 180) == (
         cfg.auto_particle_threshold, cfg.auto_particle_energy)
+
 
 # --- config and registry --------------------------------------------------------------------
 def test_config_presets_variants_and_validation():
