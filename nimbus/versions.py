@@ -8,8 +8,11 @@ compared with ``constraints.txt``, the tested versions the README installs.
 from __future__ import annotations
 
 import functools
+import os
 import platform
+import subprocess
 from importlib import metadata
+from pathlib import Path
 
 #: Distributions whose version can change a synthesised pixel or a trained figure.
 _DISTRIBUTIONS = ("torch", "numpy", "opencv-contrib-python-headless", "pycolmap", "scikit-image", "onnxruntime",
@@ -42,9 +45,52 @@ def _installed() -> dict[str, str]:
     return found
 
 
+#: The folders whose code makes the figures; a change there marks the commit ``+modified``.
+_CODE_FOLDERS = ("nimbus", "weather_synth", "benchmark")
+
+
+@functools.lru_cache(maxsize=1)
+def source_commit() -> str | None:
+    """The git commit of the source tree Nimbus runs from, as 12 hex digits; ``+modified`` appended when a
+    tracked file of the code (:data:`_CODE_FOLDERS`) differs from it.  None where Nimbus is not run from a
+    git checkout (an installed wheel), or git is missing or refuses the folder.
+
+    ``nimbus.__version__`` names a release, not the code between releases; a table assembled from
+    cells run at several commits (several sessions, several machines) needs the commit of each.
+    """
+    return commit_of(Path(__file__).resolve().parent.parent)
+
+
+def commit_of(root: Path) -> str | None:
+    """:func:`source_commit` of the checkout at ``root`` (None when it is not one)."""
+    if not (root / ".git").exists():
+        return None
+    # No optional locks: concurrent benchmark workers must not fight over (or leave) .git/index.lock.
+    env = {**os.environ, "GIT_OPTIONAL_LOCKS": "0"}
+
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=20,
+                                  env=env, stdin=subprocess.DEVNULL)
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    head = git("rev-parse", "--short=12", "HEAD")
+    if not head:
+        return None
+    changed = git("status", "--porcelain", "--untracked-files=no", "--", *_CODE_FOLDERS)
+    return head + ("+modified" if changed else "" if changed is not None else "+unknown")
+
+
 def software_versions() -> dict[str, str]:
-    """Python, Nimbus, the figure-relevant libraries that are installed, the machine and its ISA."""
+    """Python, Nimbus (and its source commit, in a git checkout), the figure-relevant libraries that are
+    installed, the machine and its ISA."""
     import nimbus
 
-    return {"nimbus": nimbus.__version__, "python": platform.python_version(), **_installed(),
-            "machine": platform.machine(), "cpu_isa": cpu_isa()}
+    found = {"nimbus": nimbus.__version__, "python": platform.python_version(), **_installed(),
+             "machine": platform.machine(), "cpu_isa": cpu_isa()}
+    commit = source_commit()
+    if commit:
+        found["nimbus_commit"] = commit
+    return found

@@ -27,3 +27,49 @@ def test_lock_file_pins_every_direct_dependency_and_the_ci_uses_it():
     assert pins["torch"] == "2.13.0"
     ci, readme = (ROOT / ".ci" / "run").read_text(), (ROOT / "README.md").read_text()
     assert '-c constraints.txt -e ".[test]"' in ci and '-c constraints.txt -e ".[test]"' in readme
+
+
+def _git(root, *args):
+    import subprocess
+
+    subprocess.run(["git", "-C", str(root), *args], check=True, capture_output=True,
+                   env={"GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@t", "GIT_COMMITTER_NAME": "t",
+                        "GIT_COMMITTER_EMAIL": "t@t", "HOME": str(root), "PATH": __import__("os").environ["PATH"]})
+
+
+def test_source_commit_names_the_commit_and_a_changed_code_file(tmp_path):
+    import shutil
+
+    import pytest
+
+    from nimbus.versions import commit_of
+
+    if shutil.which("git") is None:
+        pytest.skip("git is not installed")
+    assert commit_of(tmp_path) is None  # not a checkout: an installed wheel records no commit
+    (tmp_path / "nimbus").mkdir()
+    (tmp_path / "nimbus" / "a.py").write_text("x = 1\n")
+    (tmp_path / "notes.txt").write_text("text\n")
+    _git(tmp_path, "init", "-q")
+    _git(tmp_path, "add", ".")
+    _git(tmp_path, "commit", "-q", "-m", "c")
+    head = commit_of(tmp_path)
+    assert head is not None and len(head) == 12 and int(head, 16) >= 0
+    (tmp_path / "nimbus" / "new.py").write_text("y = 2\n")  # untracked: not the commit's code, not a change
+    (tmp_path / "notes.txt").write_text("edited\n")  # outside the code folders
+    assert commit_of(tmp_path) == head
+    (tmp_path / "nimbus" / "a.py").write_text("x = 2\n")
+    assert commit_of(tmp_path) == head + "+modified"
+    assert not (tmp_path / ".git" / "index.lock").exists()
+
+
+def test_records_carry_the_source_commit_in_a_checkout():
+    import shutil
+
+    from nimbus.versions import source_commit
+
+    commit = source_commit()
+    if shutil.which("git") is None or not (ROOT / ".git").exists():
+        assert commit is None and "nimbus_commit" not in software_versions()
+    else:
+        assert commit is not None and software_versions()["nimbus_commit"] == commit
