@@ -265,11 +265,12 @@ def test_tables_command(store_root, tmp_path, capsys):
                               "--parquet", str(tmp_path / "r.parquet")]) == 0
     names = sorted(p.name for p in out.iterdir())
     assert names == ["comparisons.csv", "comparisons.md", "margins.csv", "margins.md", "margins.tex", "paper_H.md",
-                     "paper_H.tex", "paper_R.md", "paper_R.tex", "weather_H.md", "weather_H.tex", "weather_R.md",
-                     "weather_R.tex"]
+                     "paper_H.tex", "paper_R.md", "paper_R.tex", "provenance.csv", "provenance.md", "provenance.tex",
+                     "weather_H.md", "weather_H.tex", "weather_R.md", "weather_R.tex"]
     md = (out / "comparisons.md").read_text()
     assert md.index("### haze (H)") < md.index("### the paper's reported numbers on the paper's data (tab:dehaze")
     assert md.index("### rain (R)") < md.index("against each other method")  # the margins follow the comparisons
+    assert md.index("against each other method") < md.index("### Where the figures were made")  # then provenance
     paper_tex = (out / "paper_H.tex").read_text()
     assert "NOT results of this benchmark" in paper_tex and r"\first{21.84}" in paper_tex
     rows = _latex_rows(paper_tex)

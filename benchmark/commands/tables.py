@@ -11,7 +11,7 @@ import warnings
 from pathlib import Path
 from typing import Callable, NamedTuple
 
-from benchmark.tables import ablation, comparison, margins, runtime
+from benchmark.tables import ablation, comparison, margins, provenance, runtime
 from benchmark.tables.model import Combined, Table
 from nimbus.errors import NimbusError
 
@@ -44,6 +44,7 @@ class Layout(NamedTuple):
 LAYOUTS = (
     Layout(comparison.tables, comparison.paper, COMPARISONS),
     Layout(margins.tables, margins.paper, COMPARISONS),
+    Layout(provenance.tables, provenance.paper, COMPARISONS),
     Layout(ablation.tables, ablation.paper, ABLATIONS),
     Layout(runtime.tables, runtime.paper, ABLATIONS),
 )

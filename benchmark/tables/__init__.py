@@ -10,6 +10,7 @@ module                          role
 :mod:`.margins`                 Ours against each other method per setting (``margins``): where it wins
 :mod:`.ablation`                the ablation tables (``ablation_*``), ours and the paper's
 :mod:`.runtime`                 complexity / runtime (``runtime``), ours and the paper's
+:mod:`.provenance`              the counted cells by device, CPU ISA, torch and code; the same-input check
 :mod:`.summary`                 the plain-text summary ``nimbus-bench run`` prints
 ==============================  ==============================================================
 

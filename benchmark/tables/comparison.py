@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Sequence
 
 from benchmark.data import PAPER_DIR, read_csv
 from benchmark.tables.model import AVERAGE, Block, LongFormat, Row, Table
+from benchmark.tables.provenance import mixed_note
 from benchmark.tables.results import (COMPARISON_OURS, METRIC_COLUMNS, METRICS, average, finished, ordered, protocols,
                                       scene_means)
 
@@ -87,10 +88,12 @@ def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]
             rows.append(row)
         caption = weather_caption(weather)
         protocol = parse_family_setting(weather).protocol
-        out.append(_table(weather, table_key(weather), "", scenes, rows, title=caption,
-                          notes=[f"Synthesis protocol: {protocol} ({PROTOCOL_SUMMARIES[protocol]}); SSIM protocol: "
-                                 f"{ssim_protocol}; LPIPS: {lp}; mean over seeds, Average = mean over scenes; "
-                                 f"{COMPARISON_OURS.note()}"],
+        notes = [f"Synthesis protocol: {protocol} ({PROTOCOL_SUMMARIES[protocol]}); SSIM protocol: "
+                 f"{ssim_protocol}; LPIPS: {lp}; mean over seeds, Average = mean over scenes; {COMPARISON_OURS.note()}"]
+        mixed = mixed_note(sub)
+        if mixed:
+            notes.append(mixed)
+        out.append(_table(weather, table_key(weather), "", scenes, rows, title=caption, notes=notes,
                           what=f"ours: method comparison, {caption}", csv=CSV,
                           fields={"weather": weather, "protocol": protocol, "ssim_protocol": ssim_protocol,
                                   "lpips_net": lp}))

@@ -23,6 +23,7 @@ from typing import Sequence
 import numpy as np
 
 from benchmark.tables.model import Block, Column, LongFormat, Row, Table, finite
+from benchmark.tables.provenance import mixed_note
 from benchmark.tables.results import COMPARISON_OURS, METRICS, finished, ordered, protocols, scene_means
 
 #: The signed differences (positive: Ours better) and the PSNR win count.
@@ -116,6 +117,9 @@ def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]
                 "computed seed by seed (a one-seed margin moves by about this much; the mean over n seeds by this / "
                 "sqrt(n)). " if spread else "")
              + f"SSIM protocol: {ssim_protocol}; LPIPS: {lp}; {COMPARISON_OURS.note()}"]
+    mixed = mixed_note(ok)
+    if mixed:
+        notes.append(mixed)
     return [Table("margins", "margins", title, columns=columns, groups=others, blocks=[Block(rows)],
                   lead=("Setting",), notes=notes, label="tab:nimbus-bench-margins", caption_lead="Margins: ",
                   wide=True, what=f"ours: {title}", csv=CSV,
