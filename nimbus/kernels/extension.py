@@ -107,6 +107,23 @@ def _wait_for_build(build_dir: str, idle_s: float = _IDLE_BUILD_S, poll_s: float
 
 #: The OS-locked file that serialises the builds of one library (in its build folder).
 BUILD_LOCK = "nimbus-build.lock"
+#: Seconds a process waits for the build lock before it says so.  Loading a cached build holds the lock
+#: for a moment too (torch checks the build), so the benchmark's workers, starting together, would each
+#: announce a "build" that is only the other's load.
+_QUIET_WAIT_S = 3.0
+
+
+def _flock_within(handle, seconds: float) -> bool:
+    """Take ``handle``'s exclusive flock, trying for up to ``seconds``; True when taken."""
+    deadline = time.monotonic() + seconds
+    while True:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return True
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.05)
 
 
 @contextlib.contextmanager
@@ -123,9 +140,7 @@ def build_turn(build_dir: str, say=None):
     if fcntl is not None:
         try:
             handle = open(os.path.join(build_dir, BUILD_LOCK), "a")  # noqa: SIM115 - closed in finally
-            try:
-                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
+            if not _flock_within(handle, 0.0) and not _flock_within(handle, _QUIET_WAIT_S):
                 say(f"nimbus: waiting for another process to finish building the kernels in {build_dir}")
                 fcntl.flock(handle, fcntl.LOCK_EX)
         except OSError:  # a file system without flock, or an unwritable folder: the heuristic below
