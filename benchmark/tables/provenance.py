@@ -84,11 +84,9 @@ def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]
     from weather_synth.settings import family_order
 
     ok = finished(df)
-    keys = [machine(r) for r in ok["record"]]
-    ok = ok.assign(_machine=keys)
+    ok = ok.assign(_machine=[machine(r) for r in ok["record"]])
     rows = []
-    for key in ordered(keys):
-        g = ok[ok["_machine"].map(lambda k, key=key: k == key)]
+    for key, g in ok.groupby("_machine", sort=False):
         device, isa, torch, code = key
         settings = ", ".join(ordered(g["weather"], family_order()))
         methods = ", ".join(ordered(g["method"], method_order))

@@ -140,7 +140,7 @@ def build_turn(build_dir: str, say=None):
     if fcntl is not None:
         try:
             handle = open(os.path.join(build_dir, BUILD_LOCK), "a")  # noqa: SIM115 - closed in finally
-            if not _flock_within(handle, 0.0) and not _flock_within(handle, _QUIET_WAIT_S):
+            if not _flock_within(handle, _QUIET_WAIT_S):
                 say(f"nimbus: waiting for another process to finish building the kernels in {build_dir}")
                 fcntl.flock(handle, fcntl.LOCK_EX)
         except OSError:  # a file system without flock, or an unwritable folder: the heuristic below
