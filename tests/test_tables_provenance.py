@@ -80,6 +80,7 @@ def test_mixed_machines_and_inputs_are_named_in_every_table(tmp_path):
 
 def test_an_old_record_without_versions_is_not_recorded_not_a_crash():
     assert machine({"status": "ok"}) == ("not recorded",) * 4
+    assert machine({"status": "ok", "versions": "2.13"}) == ("not recorded",) * 4  # not a mapping: not a crash
 
 
 def test_the_command_writes_the_provenance_files(tmp_path, capsys):

@@ -37,7 +37,8 @@ NOT_RECORDED = "not recorded"
 
 def machine(record: dict) -> tuple[str, str, str, str]:
     """(device, CPU ISA, torch, code) of one store record; ``not recorded`` for what an old record lacks."""
-    versions = record.get("versions") or {}
+    versions = record.get("versions")
+    versions = versions if isinstance(versions, dict) else {}  # a hand-edited or foreign store: not recorded
     code = versions.get("nimbus_commit") or (f"release {versions['nimbus']}" if versions.get("nimbus") else None)
     return (str(record.get("device") or NOT_RECORDED), str(versions.get("cpu_isa") or NOT_RECORDED),
             str(versions.get("torch") or NOT_RECORDED), str(code or NOT_RECORDED))
