@@ -16,7 +16,7 @@ from pathlib import Path
 
 #: Distributions whose version can change a synthesised pixel or a trained figure.
 _DISTRIBUTIONS = ("torch", "numpy", "opencv-contrib-python-headless", "pycolmap", "scikit-image", "onnxruntime",
-                  "colour-science", "scipy")
+                  "colour-science", "scipy", "gsplat")
 
 
 def cpu_isa() -> str:

@@ -71,6 +71,10 @@ def test_training_is_deterministic_and_writes_outputs(scene, tmp_path):
     # What the figures depend on (issue 14 item 11): library versions and the vector ISA torch dispatched to.
     assert {"torch", "numpy", "opencv-contrib-python-headless", "pycolmap"} <= res["versions"].keys()
     assert res["versions"]["cpu_isa"] in {"avx512", "avx2", "generic", "unknown"}
+    # The rasterizer that rendered: "auto" resolved here (never gsplat on the CPU), so a CUDA record says gsplat / torch.
+    from nimbus.render import backends
+
+    assert res["rasterizer"] == backends.resolve("auto", torch.device("cpu")).name and res["rasterizer"] != "gsplat"
     log = [json.loads(line) for line in (tmp_path / "a" / "train_log.jsonl").read_text().splitlines()]
     assert any(rec.get("event") == "densify" for rec in log)
     assert any(rec.get("event") == "opacity_reset" for rec in log)

@@ -346,6 +346,19 @@ class Runner:
         })
 
     # --- outputs -------------------------------------------------------------------------
+    def rasterizer(self) -> str | None:
+        """The rasterizer backend that rendered (``config.backend`` resolved on this device: ``auto`` is gsplat
+        on CUDA when it loads, else the compiled CPU kernels, else torch); None for a config without one."""
+        from nimbus.render import backends
+
+        name = getattr(self.cfg, "backend", None)
+        if name is None:
+            return None
+        try:
+            return backends.resolve(name, self.device).name
+        except NimbusError:  # training ran, so this cannot happen; a record never fails for it
+            return None
+
     def gaussians(self) -> Gaussians:
         """The method's Gaussians in the scene's world coordinates (render them with the cameras of the
         scene as given)."""
@@ -417,8 +430,8 @@ class Runner:
             # loss ignored masked pixels (per_view[name]["valid_fraction"] where a test view has one).
             "masked": ev["masked_views"] > 0, "eval_masked_views": ev["masked_views"],
             "train_masked_views": sum(view_mask(v) is not None for v in self.scene.train_views),
-            "per_view": ev["per_view"], "device": str(self.device), "nimbus_version": nimbus.__version__,
-            "versions": software_versions(), **self.method.get_info(),
+            "per_view": ev["per_view"], "device": str(self.device), "rasterizer": self.rasterizer(),
+            "nimbus_version": nimbus.__version__, "versions": software_versions(), **self.method.get_info(),
         }
         atomic_write_json(self.out / "results.json", results)
         return results
