@@ -61,11 +61,12 @@ def _machines(ok) -> str:
     return "; ".join(machine_label(k) for k in keys)
 
 
-def _swaps(block: list[tuple[str, float | None, float | None]], a: str, b: str) -> list[str]:
-    """The method pairs of one block whose PSNR order differs between the stores (a tie at 0.01 dB is no order)."""
+def _swaps(block: list[tuple[str, int, float | None, float | None]], a: str, b: str) -> list[str]:
+    """The method pairs of one block (``(label, seed, PSNR in a, PSNR in b)`` rows) whose PSNR order differs
+    between the stores; methods are compared seed by seed, and a tie at 0.01 dB is no order."""
     out = []
-    for (m1, a1, b1), (m2, a2, b2) in combinations(block, 2):
-        if None in (a1, b1, a2, b2):
+    for (m1, s1, a1, b1), (m2, s2, a2, b2) in combinations(block, 2):
+        if s1 != s2 or None in (a1, b1, a2, b2):
             continue
         da, db = round(a1 - a2, 2), round(b1 - b2, 2)
         if da * db < 0:
@@ -122,7 +123,7 @@ def compare(df_a, df_b, names: tuple[str, str] = ("A", "B"),
                                                                     and hb) else "same" if ha == hb else "DIFFERS")
                     label = method if ra["seed"] == 0 else f"{method} (seed {ra['seed']})"
                     rows.append(Row(label, values, fields={"method": method, "scene": scene, "weather": weather}))
-                    psnrs.append((label, values[("", "psnr_a")], values[("", "psnr_b")]))
+                    psnrs.append((label, ra["seed"], values[("", "psnr_a")], values[("", "psnr_b")]))
                     rows_all.append((f"{scene} {weather} {label}", values))
             blocks.append(Block(rows, name=f"{scene} {weather}"))
             per_block[f"{scene} {weather}"] = psnrs
