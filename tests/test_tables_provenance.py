@@ -52,7 +52,8 @@ def test_mixed_machines_and_inputs_are_named_in_every_table(tmp_path):
         record("garden", "H", "nimbus", 20.0, AVX512, day="2026-11-26"),
         record("garden", "H", "3dgs", 15.0, AVX2, input_sha="f" * 64, day="2026-11-28"),
         record("garden", "R", "nimbus", 25.0, AVX512, input_sha="2" * 64),
-        record("garden", "R", "3dgs", 24.0, {"nimbus": "0.1.0"}, input_sha="2" * 64, device="cuda"),
+        {**record("garden", "R", "3dgs", 24.0, {"nimbus": "0.1.0"}, input_sha="2" * 64, device="cuda"),
+         "rasterizer": "gsplat"},
     ])
     (table,), _ = provenance_tables(df, ["nimbus"])
     labels = [r.label for r in table.blocks[0].rows]
@@ -75,7 +76,9 @@ def test_mixed_machines_and_inputs_are_named_in_every_table(tmp_path):
     assert [(x["device"], x["cpu_isa"], x["code"], x["cells"]) for x in lines] == [
         ("cpu", "avx512", "aaaaaaaaaaaa", "2"), ("cpu", "avx2", "bbbbbbbbbbbb+modified", "1"),
         ("cuda", "not recorded", "release 0.1.0", "1")]
-    assert "| cpu (avx2), torch 2.13.0+cpu, code bbbbbbbbbbbb+modified | 1 | H | 3dgs | 2026-11-28 |" in to_markdown(table)
+    assert [x["rasterizer"] for x in lines] == ["not recorded", "not recorded", "gsplat"]
+    assert ("| cpu (avx2), torch 2.13.0+cpu, code bbbbbbbbbbbb+modified | 1 | H | 3dgs | not recorded | 2026-11-28 |"
+            in to_markdown(table))
 
 
 def test_an_old_record_without_versions_is_not_recorded_not_a_crash():

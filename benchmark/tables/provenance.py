@@ -6,7 +6,8 @@ reductions differently), the device (a CUDA cell rasterises with gsplat) and the
 table whose cells mix them must say so.  Layout: one table, a row per combination of device,
 CPU ISA, torch and code (the source commit, ``+modified`` for uncommitted code changes, or the
 release where the record has no commit) among the cells the tables count (their latest ``ok``
-records); columns: the number of cells, their settings, methods, and the days they finished.
+records); columns: the number of cells, their settings, methods, the rasterizer backends that rendered them
+(``gsplat``, ``cpp``, ``torch``; records older than the field: not recorded), and the days they finished.
 Its notes also check that every method of a scene and setting trained on the same synthesised
 input (one dataset manifest sha256): data made again on another machine may differ in its bytes.
 
@@ -27,10 +28,12 @@ COLUMNS = (
     Column("cells", "cells", "cells", 0),
     Column("settings", "settings", "settings", align="left"),
     Column("methods", "methods", "methods", align="left"),
+    Column("rasterizer", "rasterizer", "rasterizer", align="left"),
     Column("finished", "finished (UTC)", "finished (UTC)", align="left"),
 )
 CSV = LongFormat("provenance.csv", "the counted cells by device, CPU ISA, torch and code",
-                 ("table", "device", "cpu_isa", "torch", "code", "cells", "settings", "methods", "finished"),
+                 ("table", "device", "cpu_isa", "torch", "code", "cells", "settings", "methods", "rasterizer",
+                  "finished"),
                  group_field="group")
 NOT_RECORDED = "not recorded"
 
@@ -80,6 +83,11 @@ def _span(times) -> str:
     return "–".join(dict.fromkeys([days[0], days[-1]])) if days else NOT_RECORDED
 
 
+def _rasterizers(records) -> str:
+    """The rasterizer backends the cells rendered with (records before the field existed: not recorded)."""
+    return ", ".join(dict.fromkeys(str(r.get("rasterizer") or NOT_RECORDED) for r in records))
+
+
 def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]]:
     """The provenance table of the store's counted cells (never skipped: a store with a finished cell has one)."""
     from weather_synth.settings import family_order
@@ -93,7 +101,7 @@ def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]
         methods = ", ".join(ordered(g["method"], method_order))
         rows.append(Row(machine_label(key),
                         {("", "cells"): str(len(g)), ("", "settings"): settings, ("", "methods"): methods,
-                         ("", "finished"): _span(g["finished_at"])},
+                         ("", "rasterizer"): _rasterizers(g["record"]), ("", "finished"): _span(g["finished_at"])},
                         fields={"device": device, "cpu_isa": isa, "torch": torch, "code": code}))
     notes = [f"{len(ok)} counted cells (each cell's latest ok record); code = the source commit the cell ran at "
              "(+modified: with uncommitted code changes), or the release where the record names no commit"]
