@@ -81,6 +81,7 @@ def test_inputs_made_again_with_other_bytes_are_flagged(tmp_path):
     assert [r.values[("", "input")] for r in table.blocks[0].rows] == ["DIFFERS", "same"]
     assert any(line.startswith("Inputs DIFFER for 1 cells (garden H nimbus)") for line in lines)
     assert "the same in 1 of 1" in "\n".join(lines)  # equal figures: no swap
+    assert "ΔPSNR (B - A): exactly 0 in all 2 cells" in lines
 
 
 def test_methods_are_ordered_seed_by_seed(tmp_path):

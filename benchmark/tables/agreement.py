@@ -133,7 +133,9 @@ def compare(df_a, df_b, names: tuple[str, str] = ("A", "B"),
     lines.append(f"{len(shared)} cells in both stores; only in {a}: {only_a}, only in {b}: {only_b}")
     for metric, key, text, _, dec in DELTAS:
         ds = [(abs(v[("", key)]), v[("", key)], where) for where, v in rows_all if v[("", key)] is not None]
-        if ds:
+        if ds and not any(x for x, _, _ in ds):
+            lines.append(f"{text} ({b} - {a}): exactly 0 in all {len(ds)} cells")
+        elif ds:
             mean = sum(d for _, d, _ in ds) / len(ds)
             mean_abs = sum(x for x, _, _ in ds) / len(ds)
             _, worst, where = max(ds)
