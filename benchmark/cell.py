@@ -557,8 +557,8 @@ def _train_cell(cell: Cell, root: Path, options: CellOptions) -> dict:
         "train_time_s": results.get("train_time_s"), "peak_memory_mb": results.get("peak_memory_mb"),
         "num_gaussians": results.get("num_gaussians"), "num_params": num_params, "num_params_source": source,
         "render_fps": results.get("render_fps"), "iterations": results.get("iterations"),
-        "device": results.get("device"), "rasterizer": results.get("rasterizer"), "config": config_record(config), "config_hash": config_hash(config),
-        "config_type": type(config).__name__,
+        "device": results.get("device"), "rasterizer": results.get("rasterizer"), "config": config_record(config),
+        "config_hash": config_hash(config), "config_type": type(config).__name__,
         "run_dir": str(final.relative_to(root)),
     }
     if "components" in results:

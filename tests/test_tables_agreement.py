@@ -70,7 +70,8 @@ def test_differences_are_b_minus_a_and_a_swapped_pair_is_named(tmp_path):
     assert "| Method | Scene, setting | PSNR cpu | PSNR cuda | ΔPSNR |" in md
     assert "| nimbus | garden H | 20.00 | 19.50 | -0.50 |" in md
     lines_csv = list(csv.DictReader(io.StringIO(to_csv([table]))))
-    assert [(x["weather"], x["method"]) for x in lines_csv][:3] == [("H", "nimbus"), ("H", "3dgs"), ("H", "robust-3dgs")]
+    assert [(x["weather"], x["method"]) for x in lines_csv][:3] == [("H", "nimbus"), ("H", "3dgs"),
+                                                                     ("H", "robust-3dgs")]
     assert float(lines_csv[0]["d_psnr"]) == pytest.approx(-0.5)
 
 

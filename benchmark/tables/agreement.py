@@ -43,13 +43,21 @@ def _columns(names: tuple[str, str]) -> tuple[Column, ...]:
     a, b = names
     return (Column("psnr_a", f"PSNR {a}", f"PSNR {a}", 2), Column("psnr_b", f"PSNR {b}", f"PSNR {b}", 2),
             *(Column(key, text, latex, dec) for _, key, text, latex, dec in DELTAS),
-            Column("time_ratio", f"time {b}/{a}", f"time {b}/{a}", 2), Column("input", "input", "input", align="center"))
+            Column("time_ratio", f"time {b}/{a}", f"time {b}/{a}", 2),
+            Column("input", "input", "input", align="center"))
 
 
 def _value(row, key: str) -> float | None:
     v = row[key]
     v = None if v is None else float(v)
     return v if finite(v) else None
+
+
+def _input(ha, hb) -> str:
+    """``same`` / ``DIFFERS`` for two dataset manifest sha256s; ``not recorded`` where either record lacks one."""
+    if not (isinstance(ha, str) and ha and isinstance(hb, str) and hb):
+        return "not recorded"
+    return "same" if ha == hb else "DIFFERS"
 
 
 def _diff(a: float | None, b: float | None) -> float | None:
@@ -118,9 +126,7 @@ def compare(df_a, df_b, names: tuple[str, str] = ("A", "B"),
                         values[("", key)] = _diff(_value(ra, metric), _value(rb, metric))
                     ta, tb = _value(ra, "train_time_s"), _value(rb, "train_time_s")
                     values[("", "time_ratio")] = tb / ta if ta and tb is not None else None
-                    ha, hb = ra["input_sha256"], rb["input_sha256"]
-                    values[("", "input")] = ("not recorded" if not (isinstance(ha, str) and ha and isinstance(hb, str)
-                                                                    and hb) else "same" if ha == hb else "DIFFERS")
+                    values[("", "input")] = _input(ra["input_sha256"], rb["input_sha256"])
                     label = method if ra["seed"] == 0 else f"{method} (seed {ra['seed']})"
                     rows.append(Row(label, values, fields={"method": method, "scene": scene, "weather": weather}))
                     psnrs.append((label, ra["seed"], values[("", "psnr_a")], values[("", "psnr_b")]))
@@ -149,9 +155,9 @@ def compare(df_a, df_b, names: tuple[str, str] = ("A", "B"),
                      + "".join(f"; {k}: {', '.join(swapped[k])}" for k in ranked if swapped[k]))
     differ = [where for where, v in rows_all if v[("", "input")] == "DIFFERS"]
     if differ:
-        lines.append(f"Inputs DIFFER for {len(differ)} cells ({', '.join(differ[:4])}{', ...' if len(differ) > 4 else ''}):"
-                     " the data was synthesised again and came out other bytes, so their differences are not the "
-                     "device's or code's alone")
+        named = ", ".join(differ[:4]) + (", ..." if len(differ) > 4 else "")
+        lines.append(f"Inputs DIFFER for {len(differ)} cells ({named}): the data was synthesised again and came out "
+                     "other bytes, so their differences are not the device's or code's alone")
     elif all(v[("", "input")] == "same" for _, v in rows_all):
         lines.append("Inputs: every shared cell trained on the same synthesised bytes in both stores")
     notes = [*lines, f"Δ = {b} minus {a} as measured (positive ΔPSNR / ΔSSIM: {b} higher; positive ΔLPIPS: {b} "
