@@ -70,8 +70,11 @@ def test_mixed_machines_and_inputs_are_named_in_every_table(tmp_path):
     assert h_note.startswith("Provenance:") and "2 device / CPU ISA / torch / code combinations" in h_note
     assert "garden H trained on different synthesised inputs" in h_note
     assert "different synthesised inputs" not in r_note and "2 device" in r_note
+    # The device is named cell by cell where a table mixes devices (H's cells all ran on the CPU).
+    assert "1 cell ran on cuda (the rest on cpu): 3dgs garden R" in r_note and "ran on" not in h_note
     (margins,), _ = margins_tables(df, ["nimbus"])
     assert "3 device" in margins.notes[-1] and "garden H" in margins.notes[-1]
+    assert "1 cell ran on cuda (the rest on cpu): 3dgs garden R" in margins.notes[-1]
     lines = list(csv.DictReader(io.StringIO(to_csv([table]))))
     assert [(x["device"], x["cpu_isa"], x["code"], x["cells"]) for x in lines] == [
         ("cpu", "avx512", "aaaaaaaaaaaa", "2"), ("cpu", "avx2", "bbbbbbbbbbbb+modified", "1"),

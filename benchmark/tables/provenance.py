@@ -11,7 +11,8 @@ records); columns: the number of cells, their settings, methods, the rasterizer 
 Its notes also check that every method of a scene and setting trained on the same synthesised
 input (one dataset manifest sha256): data made again on another machine may differ in its bytes.
 
-:func:`mixed_note` is the sentence the per-weather tables add when their own cells mix these.
+:func:`mixed_note` is the sentence the per-weather tables add when their own cells mix these; where they mix
+devices it names the cells that ran on the less common one.
 There is no paper counterpart.
 """
 
@@ -70,12 +71,38 @@ def mixed_note(frame) -> str | None:
     if len(keys) > 1:
         parts.append(f"its cells come from {len(keys)} device / CPU ISA / torch / code combinations, which can move "
                      "a figure by themselves")
+    parts.extend(_other_devices(frame))
     split = [f"{scene} {weather}" for (scene, weather), hashes in inputs(frame).items() if len(hashes) > 1]
     if split:
         parts.append(f"the methods of {', '.join(split)} trained on different synthesised inputs")
     if not parts:
         return None
     return "Provenance: " + "; ".join(parts) + f" (see {KEY}.md)"
+
+
+def _other_devices(frame) -> list[str]:
+    """Where the cells ran on more than one device: which cells ran on each device but the most common one, as
+    ``12 cells ran on cuda (the rest on cpu): nimbus-paper garden S, H+R; street H`` (the device moves a figure
+    more than the code does, so a reader must find those cells without opening the provenance table)."""
+    from weather_synth.settings import family_order
+
+    scene_column = "scene_label" if "scene_label" in frame else "scene"
+    device = frame["record"].map(lambda r: machine(r)[0])
+    counts = device.value_counts(sort=False)
+    if len(counts) < 2:
+        return []
+    common = max(counts.index, key=lambda d: (counts[d], d == "cpu"))  # a tie goes to the CPU
+    out = []
+    for other in [d for d in counts.index if d != common]:
+        sub = frame[device == other]
+        methods = []
+        for method, g in sub.groupby("method", sort=False):
+            scenes = [f"{scene} {', '.join(ordered(g.loc[g[scene_column] == scene, 'weather'], family_order()))}"
+                      for scene in ordered(frame[scene_column]) if scene in set(g[scene_column])]
+            methods.append(f"{method} {'; '.join(scenes)}")
+        n = len(sub)
+        out.append(f"{n} cell{'s' if n != 1 else ''} ran on {other} (the rest on {common}): {' | '.join(methods)}")
+    return out
 
 
 def _span(times) -> str:
