@@ -43,6 +43,7 @@ from benchmark.cell import (DEFAULT_SIZE, Cell, CellOptions, error_record, make_
                             utc_now)
 from benchmark.store import FileLock, ResultsStore
 from nimbus.errors import NimbusError
+from nimbus.utils.cpus import usable_cpus
 
 #: Methods of the default benchmark, in table order (those not registered are skipped): NimbusGS, plain 3DGS,
 #: and the two-stage restore-then-3DGS baseline.
@@ -131,7 +132,9 @@ class LocalExecutor:
     Parameters
     ----------
     jobs : int
-        Cells run at once (default 1).  Each worker gets ``max(1, cores // jobs)`` torch threads.
+        Cells run at once (default 1).  Each worker gets ``max(1, cores // jobs)`` torch threads, counting
+        the cores this process may run on (:func:`nimbus.utils.cpus.usable_cpus`: a ``taskset`` or a
+        scheduler's CPU set, not the machine's count).
     """
 
     name = "local"
@@ -142,7 +145,7 @@ class LocalExecutor:
         self.jobs = int(jobs)
 
     def threads(self) -> int:
-        return max(1, (os.cpu_count() or 1) // self.jobs)
+        return max(1, usable_cpus() // self.jobs)
 
     def imap(self, cells: Sequence[Cell], root: str, options: CellOptions) -> Iterator[dict]:
         from benchmark.workers import CellWorkers

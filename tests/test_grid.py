@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import shutil
 import warnings
 
@@ -430,3 +431,15 @@ def test_cli_bad_input_is_one_clear_error(argv, message, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "error:" in err and message in err and "Traceback" not in err
     assert not (tmp_path / "r").exists()
+
+
+def test_worker_threads_count_the_cores_this_process_may_use(monkeypatch):
+    # Under taskset / a scheduler's CPU set the machine's core count oversubscribes: two runs pinned to one
+    # core each would both take every core's worth of threads.
+    monkeypatch.setattr(os, "cpu_count", lambda: 64)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {3}, raising=False)
+    assert LocalExecutor(jobs=1).threads() == 1
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(8)), raising=False)
+    assert LocalExecutor(jobs=2).threads() == 4 and LocalExecutor(jobs=16).threads() == 1
+    monkeypatch.delattr(os, "sched_getaffinity", raising=False)  # no affinity query (macOS): the machine's count
+    assert LocalExecutor(jobs=2).threads() == 32

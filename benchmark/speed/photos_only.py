@@ -39,6 +39,7 @@ import numpy as np
 
 from nimbus.data import load_scene
 from nimbus.data.align import pose_error
+from nimbus.utils.cpus import usable_cpus
 
 
 def _run(argv: list[str], log: Path, threads: int) -> None:
@@ -96,7 +97,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     work = Path(args.work)
     scenes = [s for s in args.scenes.split(",") if s]
-    threads = max(1, (os.cpu_count() or 2) // max(1, args.jobs))
+    threads = max(1, usable_cpus() // max(1, args.jobs))
 
     def prepare(name: str) -> str:
         d = work / name
