@@ -92,16 +92,20 @@ def _other_devices(frame) -> list[str]:
     if len(counts) < 2:
         return []
     common = max(counts.index, key=lambda d: (counts[d], d == "cpu"))  # a tie goes to the CPU
+    scene_order = ordered(frame[scene_column])
     out = []
     for other in [d for d in counts.index if d != common]:
         sub = frame[device == other]
         methods = []
         for method, g in sub.groupby("method", sort=False):
-            scenes = [f"{scene} {', '.join(ordered(g.loc[g[scene_column] == scene, 'weather'], family_order()))}"
-                      for scene in ordered(frame[scene_column]) if scene in set(g[scene_column])]
+            by_scene = dict(tuple(g.groupby(scene_column, sort=False)))
+            scenes = [f"{s} {', '.join(ordered(by_scene[s]['weather'], family_order()))}"
+                      for s in scene_order if s in by_scene]
             methods.append(f"{method} {'; '.join(scenes)}")
         n = len(sub)
-        out.append(f"{n} cell{'s' if n != 1 else ''} ran on {other} (the rest on {common}): {' | '.join(methods)}")
+        cells = f"{n} cell{'s' if n != 1 else ''}"
+        where = f"{'has' if n == 1 else 'have'} no device recorded" if other == NOT_RECORDED else f"ran on {other}"
+        out.append(f"{cells} {where} (the rest on {common}): {' | '.join(methods)}")
     return out
 
 

@@ -11,7 +11,9 @@ import os
 
 
 def usable_cpus() -> int:
-    """Cores in this process's CPU affinity set where the OS reports one (Linux), else ``os.cpu_count()``; at least 1."""
+    """Cores in this process's CPU affinity set where the OS reports one (Linux), else ``os.cpu_count()``.
+
+    At least 1."""
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):  # macOS / Windows: no affinity query
