@@ -528,7 +528,7 @@ def store_cells(root: Path) -> list[Cell]:
     pair whose ``nimbus`` run built CSM."""
     import json
 
-    from benchmark.store import ResultsStore, require_store
+    from benchmark.store import ResultsStore, record_data_name, require_store
     from nimbus.data.transforms import read_json
     from nimbus.errors import NimbusError
 
@@ -546,18 +546,19 @@ def store_cells(root: Path) -> list[Cell]:
         off = runs.get((cell, "nimbus-no-plm"))
         if method != "nimbus" or off is None:
             continue
-        if not (root / "scenes" / f"{cell[0]}-{cell[1]}" / "manifest.json").is_file():
-            raise NimbusError(f"{root}/scenes/{cell[0]}-{cell[1]} is missing: the store's scene seed cannot be "
+        name = record_data_name(on)  # a folder name: refused unless scene and size are single names
+        if not (root / "scenes" / name / "manifest.json").is_file():
+            raise NimbusError(f"{root}/scenes/{name} is missing: the store's scene seed cannot be "
                               "checked (the benchmark's own scenes, seed 0, are never tuned on)")
         if "csm" not in on.get("components", []):
             continue  # auto left the cell haze-free: PLM's gain there is not the hazy pair's
-        results = root / "runs" / on["cell_id"] / "results.json"
+        results = root / "runs" / on["cell_id"] / "results.json"  # the store refuses an id that is not one name
         try:
             ev = json.loads(results.read_text())["nimbus"]
         except (OSError, ValueError, KeyError) as exc:
             raise NimbusError(f"{results}: no NimbusGS evidence to read ({exc})") from None
         haze, part = ev["haze_evidence"], ev["particle_evidence"]
-        cells.append(Cell(f"{cell[0]}-{cell[1]}", cell[2], {"csm+plm": float(on["psnr"]), "csm": float(off["psnr"])},
+        cells.append(Cell(name, cell[2], {"csm+plm": float(on["psnr"]), "csm": float(off["psnr"])},
                           float(haze["dark_median"]), float(haze["dark_depth_corr"]),
                           {True: (float(part["asymmetry"]), float(part["energy"]))}))
     if not cells:

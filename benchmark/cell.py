@@ -569,11 +569,13 @@ def _train_cell(cell: Cell, root: Path, options: CellOptions) -> dict:
 
 
 def _score_cell(record: dict, root: Path, options: CellOptions) -> dict:
+    from benchmark.store import record_data_name, record_run_dir
     from nimbus.utils.fs import sha256_file
     from weather_synth.dataset import MANIFEST
 
+    record_data_name(record)  # the record's fields name folders: they must stay in the root
     data = data_dir(root, Cell.from_dict(record))
-    final = root / record["run_dir"]
+    final = record_run_dir(root, record)
     results = json.loads((final / "results.json").read_text())
     score = score_run(final, data, results, ssim_protocol=options.ssim_protocol, lpips_net=scoring_lpips(options),
                       device=options.device)

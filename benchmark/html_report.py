@@ -151,25 +151,34 @@ class ImageWriter:
         if not ok:
             raise RuntimeError(f"JPEG encoding of {name} failed")
         rel = f"{IMAGES}/{name}.jpg"
-        (self.tmp / rel).parent.mkdir(parents=True, exist_ok=True)
-        (self.tmp / rel).write_bytes(buf.tobytes())
+        dst = self._inside(rel)
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        dst.write_bytes(buf.tobytes())
         self.written.append(rel)
         return rel
+
+    def _inside(self, rel: str) -> Path:
+        """``tmp / rel``, refused unless it stays inside ``tmp/images``: names are made of record fields."""
+        from nimbus.utils.fs import confined_path
+
+        return confined_path(self.tmp / IMAGES, Path(rel).relative_to(IMAGES), "report image")
 
     def full(self, path: Path, name: str) -> str:
         """The href of a full-size image: a path relative to ``out``, or a copy in ``images/full/``."""
         if self.copy_full:
             rel = f"{IMAGES}/full/{name}{path.suffix}"
-            (self.tmp / rel).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(path, self.tmp / rel)
+            dst = self._inside(rel)
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(path, dst)
             return rel
         return os.path.relpath(Path(path).resolve(), self.out)
 
     def copy(self, path: Path, name: str) -> str:
         """Copy a file (a plot) into ``images/``; its src."""
         rel = f"{IMAGES}/{name}"
-        (self.tmp / rel).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(path, self.tmp / rel)
+        dst = self._inside(rel)
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(path, dst)
         return rel
 
 
@@ -295,13 +304,14 @@ def view_grids(root: Path, recs: list[dict], images: ImageWriter, options: Repor
     from nimbus.data.images import read_image
     from nimbus.metrics import peak_signal_noise_ratio
     from benchmark.cell import family_dir
+    from benchmark.store import record_data_name
     from weather_synth.settings import ALL_SETTING_NAMES, parse_family_setting
 
     out = []
     ok = [r for r in recs if r.get("status") == "ok" and r.get("run_dir")]
-    for scene in ordered(f"{r['scene']}-{r['size']}" for r in ok):
+    for scene in ordered(record_data_name(r) for r in ok):
         out.append(f'<h3 id="views-{e(scene)}">{e(scene)}</h3>')
-        here = [r for r in ok if f"{r['scene']}-{r['size']}" == scene]
+        here = [r for r in ok if record_data_name(r) == scene]
         for w in ordered((r["weather"] for r in here), ALL_SETTING_NAMES):
             cells = [r for r in here if r["weather"] == w]
             order = ordered((r["method"] for r in cells), options.method_order)
@@ -311,7 +321,7 @@ def view_grids(root: Path, recs: list[dict], images: ImageWriter, options: Repor
             data = family_dir(root, scene, family.protocol) / family.setting.name
             names = ordered(v["name"] for r in cells for v in (r.get("per_view") or []))
             if not names and (data / "test_list.txt").is_file():
-                names = (data / "test_list.txt").read_text().split()
+                names = in_store(root, data / "test_list.txt", f"test list of {scene}/{w}").read_text().split()
             inputs, cleans = ImageIndex(data / "images"), ImageIndex(data / "clean")
             render_folders = [render_folder(root, r) for r in cells]
             rows = []
@@ -319,12 +329,12 @@ def view_grids(root: Path, recs: list[dict], images: ImageWriter, options: Repor
                 clean_path = cleans.find(name)
                 if clean_path is None:
                     continue
-                clean = read_image(clean_path)
+                clean = read_image(in_store(root, clean_path, f"clean view {name} of {scene}/{w}"))
                 key = f"views/{scene}/{w}/{Path(name).with_suffix('').as_posix()}"
                 figs = [f"<th>{e(name)}</th>"]
                 in_path = inputs.find(name)
                 if in_path is not None:
-                    img = read_image(in_path)
+                    img = read_image(in_store(root, in_path, f"degraded view {name} of {scene}/{w}"))
                     figs.append("<td>" + figure(images, f"{key}_input", img, in_path,
                                                 psnr_caption(float(peak_signal_noise_ratio(img, clean))), clean)
                                 + "</td>")
@@ -347,9 +357,12 @@ def view_grids(root: Path, recs: list[dict], images: ImageWriter, options: Repor
 def render_folder(root: Path, rec: dict) -> tuple[Path, ImageIndex | None]:
     """A cell's folder of evaluation renders (its results.json names the split) and its index (None if missing)."""
     from benchmark.score import ImageIndex
+    from benchmark.store import record_run_dir
 
-    run = root / rec["run_dir"]
-    folder = run / "renders" / read_json(run / "results.json").get("eval_split", "test")
+    run = record_run_dir(root, rec)
+    split = read_json(in_store(root, run / "results.json", f"results.json of cell {rec['cell_id']!r}"))
+    folder = in_store(root, run / "renders" / str(split.get("eval_split", "test")),
+                      f"renders folder of cell {rec['cell_id']!r}")
     return folder, (ImageIndex(folder) if folder.is_dir() else None)
 
 
@@ -364,11 +377,24 @@ def render_figure(root: Path, rec: dict, renders: tuple[Path, ImageIndex | None]
     path = index.find(name) if index is not None else None
     if path is None:
         return f'<span class="missing">no render ({e(folder.relative_to(root))} missing)</span>'
-    img = read_image(path)
+    img = read_image(in_store(root, path, f"render {name} of cell {rec['cell_id']!r}"))
     psnr = next((v.get("psnr") for v in rec.get("per_view") or [] if v.get("name") == name), None)
     if psnr is None and img.shape == clean.shape:
         psnr = float(peak_signal_noise_ratio(img, clean))
     return figure(images, key, img, path, psnr_caption(psnr), clean if img.shape == clean.shape else None)
+
+
+def in_store(root: Path, path: Path, what: str) -> Path:
+    """``path`` (under ``root`` as written), refused unless it resolves inside the store: a record's field or a
+    file in a run folder must not lead the report to read (or, with ``copy_full``, copy) anything else."""
+    from nimbus.utils.fs import confined_path
+
+    try:
+        confined_path(root, path.relative_to(root), what)
+    except NimbusError:
+        raise NimbusError(f"{what} ({path}) leads outside the results store {root} (through a link, to "
+                          f"{path.resolve()}); copy the file into the store instead of linking to it") from None
+    return path
 
 
 def read_json(path: Path) -> dict:
@@ -406,14 +432,15 @@ def decision_html(nimbus: dict) -> str:
 
 def nimbus_sections(root: Path, recs: list[dict], images: ImageWriter) -> str:
     """Per NimbusGS cell (a run whose results.json has a ``nimbus`` record): decision and decomposition."""
+    from benchmark.store import record_run_dir
     from nimbus.data.images import read_image
 
     out = []
     for r in recs:
         if r.get("status") != "ok" or not r.get("run_dir"):
             continue
-        run = root / r["run_dir"]
-        nimbus = read_json(run / "results.json").get("nimbus")
+        run = record_run_dir(root, r)
+        nimbus = read_json(in_store(root, run / "results.json", f"results.json of cell {r['cell_id']!r}")).get("nimbus")
         strips = sorted((run / "decomposition").glob("*.png")) if (run / "decomposition").is_dir() else []
         if not isinstance(nimbus, dict) and not strips:
             continue
@@ -424,7 +451,7 @@ def nimbus_sections(root: Path, recs: list[dict], images: ImageWriter) -> str:
         if strips:
             rows = []
             for strip_path in evenly_spaced(strips, DECOMPOSITION_VIEWS):
-                strip = read_image(strip_path)
+                strip = read_image(in_store(root, strip_path, f"decomposition of cell {r['cell_id']!r}"))
                 w = strip.shape[1] // len(DECOMPOSITION_PANELS)
                 figs = [f"<th>{e(strip_path.name)}</th>"]
                 for i, panel in enumerate(DECOMPOSITION_PANELS):
@@ -502,6 +529,7 @@ def provenance_html(root: Path, recs: list[dict], command: str | None) -> str:
     """Commands, seeds, protocols, versions and the cells' records in brief."""
     from benchmark.cell import SCENE_SEED, SYNTH_PROTOCOL, SYNTH_SEED
     from benchmark.report import shorten
+    from benchmark.store import record_data_name
     from nimbus.versions import software_versions
 
     out = ["<h3>Commands</h3>"]
@@ -514,7 +542,7 @@ def provenance_html(root: Path, recs: list[dict], command: str | None) -> str:
                + e("\n".join(reproduce_commands(recs, str(root)))) + "</pre>")
     seeds = sorted({int(r["seed"]) for r in recs})
     synth = []
-    for scene in ordered(f"{r['scene']}-{r['size']}" for r in recs):
+    for scene in ordered(record_data_name(r) for r in recs):
         index = read_json(root / "data" / scene / "index.json")
         synth.append(f"{scene}: protocol {index.get('protocol', SYNTH_PROTOCOL)}, seed {index.get('seed', SYNTH_SEED)}")
     out.append(f"<h3>Seeds</h3><ul><li>training: {e(', '.join(map(str, seeds)))}</li>"

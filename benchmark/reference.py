@@ -236,6 +236,7 @@ def attach_input_content(df, root: str | Path):
     (None where the data folder is gone), and ``input_key``, its name in a reference file
     (``<scene>-<size>/<weather>``)."""
     from benchmark.cell import data_dir
+    from benchmark.store import record_data_name
 
     df = df.copy()
     cache: dict[str, dict | None] = {}
@@ -247,7 +248,7 @@ def attach_input_content(df, root: str | Path):
             keys.append(None)
             contents.append(None)
             continue
-        key = f"{cell.data_name}/{cell.weather}"
+        key = f"{record_data_name(rec)}/{cell.weather}"  # refuses a scene or size that is not one name
         if key not in cache:
             cache[key] = input_fingerprint(data_dir(Path(root), cell))
         keys.append(key)

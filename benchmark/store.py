@@ -49,6 +49,7 @@ from pathlib import Path
 from typing import Iterator
 
 from nimbus.errors import NimbusError
+from nimbus.utils.fs import confined_path, single_name
 
 STORE_FILE = "results.jsonl"
 LOCK_DIR = "locks"
@@ -80,6 +81,34 @@ def require_store(root: str | os.PathLike) -> Path:
         raise NimbusError(f"--root {root} cannot be read (permission denied); give read access or choose another "
                           "--root") from None
     return store
+
+
+def record_run_dir(root: str | os.PathLike, record: dict) -> Path:
+    """``ROOT/<run_dir>`` of a record: its run folder, refused (NimbusError naming the cell and the field)
+    unless it resolves inside the root (an absolute path, ``..`` or a link leading out would make a
+    reader read, and the report copy, files from anywhere)."""
+    run_dir = record.get("run_dir")
+    with _edited_record():
+        confined_path(root, run_dir, f"{STORE_FILE} record {record.get('cell_id')!r}: 'run_dir'")
+    return Path(root) / run_dir
+
+
+def record_data_name(record: dict) -> str:
+    """``<scene>-<size>`` of a record, the name of its data folders (``ROOT/data/<name>``, ``ROOT/scenes/<name>``);
+    each part must be a single file name (:func:`nimbus.utils.fs.single_name`), else NimbusError naming it."""
+    where = f"{STORE_FILE} record {record.get('cell_id')!r}"
+    with _edited_record():
+        return "-".join(single_name(record.get(k), f"{where}: {k!r}") for k in ("scene", "size"))
+
+
+@contextlib.contextmanager
+def _edited_record() -> Iterator[None]:
+    """Add what to do to a refusal of a record's field: nimbus-bench never writes such a record."""
+    try:
+        yield
+    except NimbusError as e:
+        raise NimbusError(f"{e}. The store was edited by hand or corrupted: delete that record's line from "
+                          f"{STORE_FILE} and rerun the cell") from None
 
 
 def counting_records(records: Iterator[dict] | list[dict]) -> dict[str, dict]:
@@ -322,6 +351,9 @@ def _read_lines(path: Path) -> Iterator[dict]:
                               "by hand: delete that line and rerun to recompute the cell") from None
         if not isinstance(rec, dict) or "cell_id" not in rec:
             raise NimbusError(f"{path} line {i} is not a benchmark record; delete it and rerun")
+        # The id names the cell's run folder, lock and report thumbnails: one name, never a path.
+        with _edited_record():
+            single_name(rec["cell_id"], f"{path} line {i}: 'cell_id'")
         yield rec
 
 

@@ -444,3 +444,88 @@ def test_score_reports_an_unreadable_input_as_one_error(scored, tmp_path, monkey
     monkeypatch.setattr(score, "list_images", denied)  # as a folder without read permission does
     assert run_cli(TOOL.run, ["score", "--pred", str(renders), "--gt", str(scene_dir), "--lpips", "none"]) == 2
     one_error_line(capsys, str(renders), "permission denied")
+
+
+# --- confinement: a record's fields never lead the report out of the store (issue 35) -----------------------
+CID = "garden-tiny_H_3dgs_tiny_s0"
+
+
+def _image(path: Path, value: float) -> None:
+    write_image(path, np.full((8, 8, 3), value, np.float32))
+
+
+@pytest.fixture
+def report_store(tmp_path):
+    """A hand-made store of one finished cell (nothing trains): its data, its run folder and its record; and,
+    outside the store, a run folder with a 'secret' render."""
+    root = tmp_path / "bench"
+    data = root / "data" / "garden-tiny" / "H"
+    _image(data / "images" / "000.png", 0.6)
+    _image(data / "clean" / "000.png", 0.5)
+    (data / "test_list.txt").write_text("000.png\n")
+    for run in (root / "runs" / CID, tmp_path / "outside" / "run"):
+        (run / "results.json").parent.mkdir(parents=True)
+        (run / "results.json").write_text('{"eval_split": "test"}')
+        _image(run / "renders" / "test" / "000.png", 0.45)
+    record = {"cell_id": CID, "scene": "garden", "size": "tiny", "weather": "H", "method": "3dgs", "preset": "tiny",
+              "seed": 0, "overrides": {}, "status": "ok", "psnr": 26.0, "ssim": 0.9, "lpips": None,
+              "ssim_protocol": "3dgs", "lpips_net": None, "train_time_s": 1.0, "run_dir": f"runs/{CID}",
+              "per_view": [{"name": "000.png", "psnr": 26.0}]}
+    return root, record
+
+
+def _files(top: Path) -> dict[str, bytes]:
+    """Every file and link under ``top`` (links not followed), by path relative to it."""
+    return {str(p.relative_to(top)): (os.readlink(p).encode() if p.is_symlink() else p.read_bytes())
+            for p in sorted(top.rglob("*")) if p.is_symlink() or p.is_file()}
+
+
+def _escape_by_link(root: Path, record: dict) -> dict:
+    run = root / "runs" / CID
+    for p in sorted(run.rglob("*"), reverse=True):
+        p.rmdir() if p.is_dir() else p.unlink()
+    run.rmdir()
+    run.symlink_to(root.parent / "outside" / "run")
+    return record
+
+
+def _render_linked_out(root: Path, record: dict) -> dict:
+    render = root / "runs" / CID / "renders" / "test" / "000.png"
+    render.unlink()
+    render.symlink_to(root.parent / "outside" / "run" / "renders" / "test" / "000.png")
+    return record
+
+
+# case -> (how the record or the store is made hostile, words the one error line must hold)
+ONE_NAME, OUTSIDE = "not a single file name", "points outside"
+REPORT_ESCAPES = {
+    # the thumbnails' names are made of the cell id: this one used to write JPEGs beside --out
+    "cell_id-climbs-out": (lambda root, r: dict(r, cell_id="x/" + "../" * 6 + "escaped"), ("'cell_id'", ONE_NAME)),
+    "cell_id-absolute": (lambda root, r: dict(r, cell_id=str(root.parent / "escaped")), ("'cell_id'", ONE_NAME)),
+    # --copy-full used to read and copy this run's images into the report
+    "run_dir-absolute": (lambda root, r: dict(r, run_dir=str(root.parent / "outside" / "run")), ("'run_dir'", OUTSIDE)),
+    "run_dir-climbs-out": (lambda root, r: dict(r, run_dir="../outside/run"), ("'run_dir'", OUTSIDE)),
+    "run_dir-linked-out": (_escape_by_link, ("'run_dir'", OUTSIDE)),
+    "scene-climbs-out": (lambda root, r: dict(r, scene="../../outside"), ("'scene'", ONE_NAME)),
+    "render-linked-out": (_render_linked_out, ("render 000.png", "leads outside the results store")),
+}
+
+
+def test_the_hand_made_store_reports(report_store, tmp_path, capsys):
+    """The sane store the escapes below start from makes a report (so a refusal there is the escape's)."""
+    root, record = report_store
+    ResultsStore(root).append(record)
+    assert run_cli(TOOL.run, ["report", "--root", str(root), "--out", str(tmp_path / "out"), "--copy-full"]) == 0
+    assert (tmp_path / "out" / "index.html").is_file() and list((tmp_path / "out" / "images" / "full").rglob("*.png"))
+
+
+@pytest.mark.parametrize("case", list(REPORT_ESCAPES))
+def test_report_refuses_record_fields_that_lead_out_of_the_store(case, report_store, tmp_path, capsys):
+    root, record = report_store
+    make_hostile, words = REPORT_ESCAPES[case]
+    ResultsStore(root).append(make_hostile(root, record))
+    before = _files(tmp_path)
+    assert run_cli(TOOL.run, ["report", "--root", str(root), "--out", str(tmp_path / "out"), "--copy-full"]) == 2
+    one_error_line(capsys, *words)
+    assert _files(tmp_path) == before  # nothing written anywhere: not beside --out, not in the store
+    assert not (tmp_path / "out").exists()

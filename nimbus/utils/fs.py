@@ -48,23 +48,50 @@ def atomic_write_json(path: str | os.PathLike, obj: Any) -> Path:
     return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
 
 
+#: How much of a refused value a message shows: enough to find it, never a whole file's worth.
+SHOWN_CHARS = 80
+
+
+def shown(value: object) -> str:
+    """``repr(value)`` cut to :data:`SHOWN_CHARS` characters, for messages about a value read from data."""
+    text = repr(value)
+    return text if len(text) <= SHOWN_CHARS else text[: SHOWN_CHARS - 3] + "..."
+
+
 def confined_path(root: str | os.PathLike, name: str | os.PathLike, what: str = "file") -> Path:
     """``root / name`` with symlinks resolved, refused unless it lies inside ``root``.
 
-    Every file name that comes from a file (a COLMAP ``images.txt`` name, a ``transforms.json``
-    ``file_path``, a split list, a mask or depth name) goes through here before anything is
-    read from or written to it, so a hostile name such as ``/etc/passwd`` or ``../../x.png``
-    (or a symlink that leads outside) cannot make Nimbus touch files outside the scene or
-    the output folder.
+    The one rule for a path read from data rather than typed by the user: a name in a scene's
+    files (a COLMAP ``images.txt`` name, a ``transforms.json`` ``file_path``, a split list, a
+    mask or depth name), a scene's own model and split files, a results store record's
+    ``run_dir``, a name that becomes a file of an output folder.  It goes through here before
+    anything is read from or written to it, so a hostile name such as ``/etc/passwd`` or
+    ``../../x.png`` (or a symlink that leads outside) cannot make Nimbus touch files outside
+    the scene, the store or the output folder.  The message names ``what`` (the field) and shows
+    the name cut short (:func:`shown`); it never reads, so never shows, what the name leads to.
     """
     if not isinstance(name, (str, os.PathLike)) or not str(name) or "\x00" in str(name):
-        raise NimbusError(f"invalid {what} name {name!r}: expected a relative path inside {root}")
+        raise NimbusError(f"invalid {what} name {shown(name)}: expected a relative path inside {root}")
     base = Path(root).resolve()
     path = (base / name).resolve()
     if path != base and base not in path.parents:
-        raise NimbusError(f"{what} name {str(name)!r} points outside {root}; names must be relative paths "
+        raise NimbusError(f"{what} name {shown(str(name))} points outside {root}; names must be relative paths "
                           "inside the folder (no absolute paths, no '..', no links leading out)")
     return path
+
+
+def single_name(value: object, what: str) -> str:
+    """``value`` if it is a single safe file name, else NimbusError naming ``what``.
+
+    For a value read from data that becomes one component of a path (a results record's
+    ``cell_id`` names its run folder, lock and thumbnails): a non-empty string without ``/``,
+    ``\\`` or NUL that is not ``.`` or ``..``, at most 255 bytes.
+    """
+    if (not isinstance(value, str) or value in ("", ".", "..") or any(c in value for c in "/\\\x00")
+            or len(value.encode("utf-8", "surrogatepass")) > 255):
+        raise NimbusError(f"{what} is {shown(value)}, not a single file name (no '/', '\\', '..' or NUL); "
+                          "it names a folder or file, so it must stay one name")
+    return value
 
 
 def refuse_overlap(out: str | os.PathLike, inputs, flag: str = "--out") -> None:
