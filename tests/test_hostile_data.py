@@ -141,6 +141,64 @@ def test_symlinks_that_lead_out_of_the_scene_are_refused(tmp_path):
     assert load_scene(inside).view("000.png").load_image().shape == (24, 32, 3)
 
 
+# --- confinement: a scene's own files that are links leading out (issue 35) -----------------------------
+SECRET = "SECRET-LINE-of-another-file"
+
+
+def _link_out(root: Path, name: str) -> None:
+    """Move ``root/name`` out of the scene (with a secret added where it is text) and link it back."""
+    src, dst = root / name, root.parent / "outside" / name.replace("/", "_")
+    dst.parent.mkdir(exist_ok=True)
+    if src.is_dir():
+        src.rename(dst)
+    elif name.endswith(".txt"):
+        dst.write_text(src.read_text() + SECRET + "\n")
+        src.unlink()
+    elif name.endswith(".json"):
+        dst.write_text(json.dumps({**json.loads(src.read_text()), "note": SECRET}))
+        src.unlink()
+    else:
+        src.rename(dst)
+    src.symlink_to(dst)
+
+
+# case -> (scene layout, file linked out, what the error names)
+SCENE_FILE_ESCAPES = {
+    "test_list": ("colmap", "test_list.txt", "split list test_list.txt"),
+    "train_list": ("colmap", "train_list.txt", "split list train_list.txt"),
+    "sparse": ("colmap", "sparse", "COLMAP model folder"),
+    "sparse-0": ("colmap", "sparse/0", "COLMAP model folder"),
+    "images.bin": ("colmap", "sparse/0/images.bin", "COLMAP model file"),
+    "transforms.json": ("transforms", "transforms.json", "camera file"),
+}
+
+
+@pytest.mark.parametrize("case", list(SCENE_FILE_ESCAPES))
+def test_scene_files_linked_out_of_the_scene_are_refused_unread(tmp_path, case):
+    layout, name, what = SCENE_FILE_ESCAPES[case]
+    root = _colmap_scene(tmp_path) if layout == "colmap" else _transforms_scene(tmp_path / "scene")
+    if name == "train_list.txt":
+        (root / "test_list.txt").unlink()
+        (root / "train_list.txt").write_text("001.png\n002.png\n")
+    if name == "sparse":  # a model in sparse/ itself, not sparse/0
+        for f in (root / "sparse" / "0").iterdir():
+            f.rename(root / "sparse" / f.name)
+        (root / "sparse" / "0").rmdir()
+    _link_out(root, name)
+    with pytest.raises(NimbusError, match=f"{what}.*leads outside the scene") as info:
+        load_scene(root)
+    assert SECRET not in str(info.value)  # the outside file is never quoted
+
+
+def test_scene_files_linked_inside_the_scene_are_read(tmp_path):
+    root = _colmap_scene(tmp_path)
+    (root / "test_list.txt").rename(root / "lists.txt")
+    (root / "test_list.txt").symlink_to(root / "lists.txt")
+    (root / "sparse" / "0").rename(root / "model")
+    (root / "sparse" / "0").symlink_to(root / "model")
+    assert load_scene(root).test_names == {"000.png"}
+
+
 # --- 2. corrupt COLMAP models --------------------------------------------------------------
 def _image_count_offset(images_bin: bytes) -> int:
     """Offset of the first image's num_points2D (after id, pose, camera id and the NUL-terminated name)."""

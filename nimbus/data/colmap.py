@@ -405,6 +405,16 @@ def _cam_from_world(image: pycolmap.Image) -> np.ndarray:
     return np.asarray(pose.matrix())
 
 
+def _check_model_inside(root: Path, sparse: Path) -> None:
+    """Refuse a model folder, or a model file in it, that is a link leading out of the scene: another
+    folder's model would be read (and quoted in errors) as this scene's (:func:`scene_file`)."""
+    rel = sparse.relative_to(root).as_posix()
+    scene_file(root, rel, "COLMAP model folder")
+    for f in sorted(sparse.iterdir()):
+        if f.suffix in (".bin", ".txt"):
+            scene_file(root, f"{rel}/{f.name}", "COLMAP model file")
+
+
 def read_colmap(root: str | os.PathLike, downscale: int = 1, cache_dir: str | os.PathLike | None = None) -> Scene:
     """Read a COLMAP scene folder (see the module docstring for the layout and accepted models).
 
@@ -439,6 +449,7 @@ def read_colmap(root: str | os.PathLike, downscale: int = 1, cache_dir: str | os
     if sparse is None:
         raise NimbusError(f"{root} has no COLMAP model (expected sparse/0/cameras.bin or .txt); "
                           f"to make one from photos run: nimbus-synth sfm PHOTOS --out {root}")
+    _check_model_inside(root, sparse)
     rec = read_reconstruction(sparse)
     images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
     if not images:

@@ -271,7 +271,8 @@ def read_split_lists(root: Path, names: Sequence[str]) -> frozenset[str] | None:
 
     Lists hold one image name per line (blank lines and ``#`` comments ignored); every name must
     be a view of the scene (and so a relative name inside it, see :func:`scene_file`).
-    With only ``train_list.txt``, every other view is a test view.
+    With only ``train_list.txt``, every other view is a test view.  A list that is a link leading
+    out of the scene is refused before it is read: its lines, quoted in messages, could be any file's.
     """
     root = Path(root)
     train_f, test_f = root / "train_list.txt", root / "test_list.txt"
@@ -280,6 +281,7 @@ def read_split_lists(root: Path, names: Sequence[str]) -> frozenset[str] | None:
     known = set(names)
 
     def read(f: Path) -> list[str]:
+        scene_file(root, f.name, f"split list {f.name}")
         try:
             lines = f.read_text(encoding="utf-8").splitlines()
         except UnicodeDecodeError:

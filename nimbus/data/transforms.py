@@ -260,6 +260,8 @@ def read_transforms(path: str | os.PathLike, downscale: int = 1, cache_dir: str 
     if not path.exists():
         raise NimbusError(f"scene folder {path} does not exist; check the path")
     root, files = _transforms_files(path)
+    for file, _ in files:  # one linked from elsewhere would be read (and quoted in errors) as this scene's
+        scene_file(root, file.name, "camera file")
     records = []  # (relative image path, full image path, camera, is_test, lens, mask_path)
     missing, test_filenames, metas = [], [], []
     for file, is_test in files:
