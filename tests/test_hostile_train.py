@@ -215,6 +215,32 @@ def test_out_over_the_scene_is_refused_and_the_scene_is_intact(scene_dir, capsys
     assert snapshot(scene_dir.parent) == before
 
 
+# --- confinement: a resumed run never writes into its scene, and a refusal changes nothing (issue 35) --------
+def _disk_run(scene_dir: Path, scene_copy: Path, out: Path) -> Path:
+    """A 4-step run (checkpoints at 2 and 4, a log line per step) of a copy of the scene on disk, in ``out``."""
+    from nimbus.train.run_folder import load_scene_arg
+
+    shutil.copytree(scene_dir, scene_copy)
+    Runner("3dgs", load_scene_arg(str(scene_copy)), _cfg(iterations=4, checkpoint_interval=2), out, seed=0,
+           scene_path=str(scene_copy), progress=False).train()
+    return out
+
+
+@pytest.mark.parametrize("where", ["inside", "contains"])
+def test_resume_refuses_a_run_folder_overlapping_its_scene(scene_dir, tmp_path, capsys, where):
+    """A run folder inside the scene (left there by a library call or moved there) used to resume, training
+    and writing its renders, checkpoints and log into the input."""
+    if where == "inside":
+        scene, run = tmp_path / "scene", tmp_path / "scene" / "run"
+    else:  # the scene inside the run folder
+        scene, run = tmp_path / "run" / "scene", tmp_path / "run"
+    _disk_run(scene_dir, scene, run)
+    before = snapshot(tmp_path)
+    code, err = cli(["--resume", run], capsys)
+    assert_one_error(code, err, "--resume", "overlaps the scene", "move the run folder")
+    assert snapshot(tmp_path) == before
+
+
 # --- 3. a garbage model writes no results ------------------------------------------------------------------
 def _poisoned(after_step):
     """``after_step`` that then, after the last step, turns one Gaussian's opacity NaN (the loss guard has

@@ -47,9 +47,10 @@ from nimbus.render.gaussians import Gaussians
 from nimbus.train.checkpoint import CHECKPOINT, LAST_GOOD, read_checkpoint, write_checkpoint
 from nimbus.train.frame import SceneFrame
 from nimbus.train.ply import write_gaussian_ply
-from nimbus.train.run_folder import config_from_record, config_record, load_scene_arg, read_run_config
+from nimbus.train.run_folder import (config_from_record, config_record, load_scene_arg, read_run_config,
+                                     scene_input_folder)
 from nimbus.train.views import view_mask
-from nimbus.utils.fs import atomic_write_json, atomic_write_text
+from nimbus.utils.fs import atomic_write_json, atomic_write_text, refuse_overlap
 from nimbus.utils.memory import peak_rss_mb
 from nimbus.versions import software_versions
 
@@ -142,6 +143,15 @@ class Runner:
         if not os.access(run, os.W_OK | os.X_OK):
             raise NimbusError(f"{run} cannot be written (read-only or not ours); a resumed run writes its checkpoint "
                               "and outputs there. Fix its permissions or copy the run folder somewhere writable")
+        # A run folder in the scene it trains on would fill the input with checkpoints, renders and logs.
+        scene = scene_input_folder(read_run_config(run)["scene"])
+        try:
+            refuse_overlap(run, [scene], "--resume")
+        except NimbusError:
+            raise NimbusError(f"--resume {run} overlaps the scene {scene} it trains on, and a resumed run writes into "
+                              "its folder; move the run folder apart from the scene and resume it there (nothing "
+                              "was written)") from None
+        # Everything (config, scene, checkpoint) is checked before the log is touched: a refusal changes nothing.
         runner = cls.open(run, progress=progress, device=device)
         runner._truncate_log(runner.iteration)
         return runner
