@@ -241,6 +241,23 @@ def test_resume_refuses_a_run_folder_overlapping_its_scene(scene_dir, tmp_path, 
     assert snapshot(tmp_path) == before
 
 
+@pytest.mark.parametrize("field, value", [("iteration", -3), ("iteration", 2.5), ("visible_steps", -1),
+                                          ("visible_steps", 99), ("train_time", float("nan"))])
+def test_a_refused_checkpoint_leaves_the_run_folder_untouched(scene_dir, tmp_path, capsys, field, value):
+    """A checkpoint with an impossible count is refused before the log is opened: a negative iteration used to
+    cut train_log.jsonl to 0 bytes (every line was 'after' it) before the run failed."""
+    from nimbus.train.checkpoint import read_checkpoint, write_checkpoint
+
+    run = _disk_run(scene_dir, tmp_path / "scene", tmp_path / "run")
+    state = read_checkpoint(run / CHECKPOINT)
+    write_checkpoint(run / CHECKPOINT, {**state, field: value})
+    assert (run / "train_log.jsonl").stat().st_size > 0
+    before = snapshot(tmp_path)
+    code, err = cli(["--resume", run], capsys)
+    assert snapshot(tmp_path) == before
+    assert_one_error(code, err, "does not fit this run", field)
+
+
 # --- 3. a garbage model writes no results ------------------------------------------------------------------
 def _poisoned(after_step):
     """``after_step`` that then, after the last step, turns one Gaussian's opacity NaN (the loss guard has

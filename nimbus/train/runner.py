@@ -24,6 +24,7 @@ the valid pixels; ``results.json`` records ``masked`` and each masked test view'
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import sys
@@ -55,6 +56,17 @@ from nimbus.utils.memory import peak_rss_mb
 from nimbus.versions import software_versions
 
 LOG = "train_log.jsonl"
+
+
+def _count(state: dict, key: str, default=None) -> int:
+    """``state[key]``, a checkpoint's step count: a non-negative integer (bool and fractions refused), else
+    ValueError naming it."""
+    value = state.get(key, default) if default is not None else state[key]
+    if isinstance(value, torch.Tensor) and value.numel() == 1:
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+        raise ValueError(f"{key!r} is {value!r}, not a non-negative integer")
+    return int(value)
 
 
 def peak_memory_mb(device: torch.device) -> float:
@@ -313,11 +325,17 @@ class Runner:
             if not np.allclose([float(x) for x in state["frame"]], self.frame.as_list(), rtol=1e-9, atol=0):
                 raise ValueError(f"it was trained in the frame {state['frame']}, this scene's is "
                                  f"{self.frame.as_list()}")
-            self.method.load_state_dict(state)
-            self.iteration = int(state["iteration"])
-            self.train_time = float(state["train_time"])
+            # Checked before anything is restored or the log is cut back to the iteration: a negative one
+            # would leave no line of it (every line is "after" it).
+            iteration, train_time = _count(state, "iteration"), float(state["train_time"])
             # Checkpoints written before the count existed: assume every step saw something.
-            self.visible_steps = int(state.get("visible_steps", self.iteration))
+            visible = _count(state, "visible_steps", default=iteration)
+            if not (math.isfinite(train_time) and train_time >= 0):
+                raise ValueError(f"'train_time' is {train_time}, not a number of seconds >= 0")
+            if visible > iteration:
+                raise ValueError(f"'visible_steps' is {visible}, more than the {iteration} steps taken")
+            self.method.load_state_dict(state)
+            self.iteration, self.train_time, self.visible_steps = iteration, train_time, visible
             self.resumed_mid_step = bool(state.get("mid_step", False))
         except (KeyError, TypeError, ValueError, IndexError, AttributeError, RuntimeError) as e:
             raise NimbusError(f"checkpoint {path} does not fit this run ({e.__class__.__name__}: {str(e)[:200]}); "
