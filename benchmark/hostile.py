@@ -76,6 +76,8 @@ BUDGET_TIMEOUT_S, BUDGET_MEMORY_LIMIT_MB = 30.0, 1500.0
 COLUMNS = ("case", "tool", "expected", "outcome", "exit", "message", "inputs_modified", "outside_writes",
            "partial_output", "seconds", "cpu_s", "peak_mb", "budget", "verdict", "command")
 MD_MESSAGE_CHARS = 110
+#: Names this command in its --out folder's marker: --overwrite replaces only a folder it wrote itself.
+OWNER = "nimbus-bench hostile"
 SCENE, OUT = "scene", "out"
 TRAIN = ("--preset", "tiny", "--set", "iterations=20", "--quiet")  # any training a case reaches is short
 
@@ -942,7 +944,7 @@ def write_report(out: str | Path, rows: Sequence[dict], cases: Sequence[HostileC
     from nimbus.utils.fs import atomic_dir
 
     names = ("hostile.csv", "hostile.md")
-    with atomic_dir(out, overwrite=overwrite) as tmp:
+    with atomic_dir(out, overwrite=overwrite, owner=OWNER) as tmp:
         (tmp / names[0]).write_text(to_csv(rows))
         (tmp / names[1]).write_text(to_markdown(rows, cases, wall_s))
     return [Path(out) / n for n in names]

@@ -58,6 +58,8 @@ if TYPE_CHECKING:
 
 PAGE = "index.html"
 IMAGES = "images"
+#: Names this command in its --out folder's marker: --overwrite replaces only a folder it wrote itself.
+OWNER = "nimbus-bench report"
 #: Thumbnails are at most this wide (never enlarged), a little more than they are shown (160 px): a 3-scene x
 #: 7-setting x 6-method store of 320 x 240 views made a 4.7 MB report (2 views a setting; noisy stand-in renders,
 #: the worst case for JPEG).
@@ -656,8 +658,9 @@ def build_report(root: str | os.PathLike, out: str | os.PathLike, options: Repor
     Raises
     ------
     NimbusError
-        No store (or one without a finished cell), an ``out`` that is, holds or lies in the store's
-        results, runs or data, or an existing non-empty ``out`` without ``overwrite``.
+        No store (or one without a finished cell), an ``out`` that is, holds or lies in the store
+        (or in any store or scene), an existing non-empty ``out`` without ``overwrite``, or one
+        this command did not write (:func:`nimbus.utils.fs.check_output_dir` with an owner).
     """
     from benchmark.store import require_store
     from nimbus.utils.fs import atomic_dir, check_output_dir, refuse_overlap
@@ -669,7 +672,7 @@ def build_report(root: str | os.PathLike, out: str | os.PathLike, options: Repor
                           f"{options.thumb_width}")
     # Replacing --out deletes it: it must be none of what the page is made from.
     refuse_overlap(out, [store, root / "runs", root / "data", root / "scenes", options.tradeoff, options.stability])
-    check_output_dir(out, overwrite)
-    with atomic_dir(out, overwrite=overwrite) as tmp:
+    check_output_dir(out, overwrite, owner=OWNER)
+    with atomic_dir(out, overwrite=overwrite, owner=OWNER) as tmp:
         (tmp / PAGE).write_text(build_page(root, tmp, out, options, command), encoding="utf-8")
     return out / PAGE

@@ -59,6 +59,8 @@ DEFAULT_PRESET = "tiny"
 #: densification, pruning, NimbusGS's stage switch and residual refreshes, short enough that the
 #: whole report takes a minute or two on a CPU.
 DEFAULT_ITERATIONS = 100
+#: Names this command in its --out folder's marker: --overwrite replaces only a folder it wrote itself.
+OWNER = "nimbus-bench stability"
 TRAIN_SEED = 0
 COLUMNS = ("case", "method", "expected", "outcome", "stage", "message", "nan_seen", "nan_where", "psnr", "ssim",
            "lpips", "seconds", "verdict")
@@ -575,7 +577,7 @@ def write_report(out: str | Path, rows: Sequence[dict], cases: Sequence[Stabilit
            "rows": [dict(r, psnr="inf" if isinstance(r["psnr"], float) and math.isinf(r["psnr"]) else r["psnr"])
                     for r in rows]}
     names = ("stability.csv", "stability.md", "stability.json")
-    with atomic_dir(out, overwrite=overwrite) as tmp:
+    with atomic_dir(out, overwrite=overwrite, owner=OWNER) as tmp:
         (tmp / names[0]).write_text(to_csv(rows))
         (tmp / names[1]).write_text(to_markdown(rows, cases, options, wall_s))
         (tmp / names[2]).write_text(json.dumps(jsonable(doc), indent=2, sort_keys=True) + "\n")

@@ -529,3 +529,79 @@ def test_report_refuses_record_fields_that_lead_out_of_the_store(case, report_st
     one_error_line(capsys, *words)
     assert _files(tmp_path) == before  # nothing written anywhere: not beside --out, not in the store
     assert not (tmp_path / "out").exists()
+
+
+# --- --overwrite replaces only the command's own earlier output (issue 35) ------------------------------------
+def _scene_folder(tmp_path: Path) -> Path:
+    scene = tmp_path / "scene"
+    (scene / "sparse" / "0").mkdir(parents=True)
+    (scene / "sparse" / "0" / "cameras.txt").write_text("# a COLMAP model\n")
+    return scene
+
+
+MARKER = ".nimbus-output"  # what a command writes into its output folder, naming itself (an on-disk name)
+
+
+# case -> (the --out folder, made in the report store's tmp_path; words the one error line must hold)
+REPORT_OUT_REFUSALS = {
+    # these two used to be deleted by `report --out ... --overwrite`
+    "stability-results-in-the-store": (lambda root: root / "stability", ("results store",)),
+    "the-stores-locks": (lambda root: root / "locks", ("results store",)),
+    "a-new-folder-in-the-store": (lambda root: root / "report", ("results store",)),
+    "a-new-folder-in-a-scene": (lambda root: _scene_folder(root.parent) / "report", ("scene",)),
+    "a-folder-of-the-users": (lambda root: root.parent / "mine", ("not written by nimbus-bench report",)),
+    "another-commands-output": (lambda root: root.parent / "stab", ("not written by 'nimbus-bench stability'",)),
+}
+
+
+@pytest.mark.parametrize("case", list(REPORT_OUT_REFUSALS))
+def test_report_overwrite_refuses_what_it_did_not_write(case, report_store, tmp_path, capsys):
+    root, record = report_store
+    ResultsStore(root).append(record)
+    (root / "stability").mkdir()
+    (root / "stability" / "stability.csv").write_text("case,method,verdict\nno_haze,3dgs,ok\n")
+    (root / "locks").mkdir()
+    (root / "locks" / f"{CID}.lock").write_text('{"pid": 1}\n')
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "thesis.tex").write_text("mine")
+    (tmp_path / "stab").mkdir()
+    (tmp_path / "stab" / MARKER).write_text("nimbus-bench stability\n")
+    out, words = REPORT_OUT_REFUSALS[case]
+    out = out(root)
+    before = _files(tmp_path)
+    assert run_cli(TOOL.run, ["report", "--root", str(root), "--out", str(out), "--overwrite"]) == 2
+    one_error_line(capsys, "--out", *words, "nothing was written or deleted")
+    assert _files(tmp_path) == before
+
+
+def test_report_overwrite_replaces_its_own_earlier_report(report_store, tmp_path):
+    root, record = report_store
+    ResultsStore(root).append(record)
+    out = tmp_path / "out"
+    assert run_cli(TOOL.run, ["report", "--root", str(root), "--out", str(out)]) == 0
+    (out / "stale.txt").write_text("from the earlier report")
+    assert run_cli(TOOL.run, ["report", "--root", str(root), "--out", str(out), "--overwrite"]) == 0
+    assert (out / "index.html").is_file() and not (out / "stale.txt").exists()
+
+
+@pytest.mark.parametrize("command", [["stability", "--cases", "no_haze", "--methods", "3dgs", "--iterations", "2",
+                                      "--lpips", "none"], ["hostile", "--cases", "seed_huge"]])
+def test_case_reports_overwrite_only_their_own_output(command, tmp_path, capsys):
+    """Checked before any case runs: a foreign folder is refused, and so is one inside a results store."""
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "thesis.tex").write_text("mine")
+    ResultsStore(tmp_path / "bench").append({"cell_id": "a", "status": "ok"})
+    before = _files(tmp_path)
+    for out, words in ((tmp_path / "mine", "not written by"), (tmp_path / "bench" / command[0], "results store")):
+        argv = [*command, "--out", str(out), "--work", str(tmp_path / "w"), "--overwrite"]
+        assert run_cli(TOOL.run, argv) == 2
+        one_error_line(capsys, words)
+        assert _files(tmp_path) == before
+
+
+def test_the_store_file_is_what_marks_a_store():
+    from benchmark.store import STORE_FILE
+    from nimbus.utils.fs import OUTPUT_MARKER, STORE_OR_SCENE_FILES
+
+    assert STORE_OR_SCENE_FILES[0] == STORE_FILE  # nimbus cannot import benchmark: the name is repeated
+    assert OUTPUT_MARKER == MARKER

@@ -258,6 +258,27 @@ def test_a_refused_checkpoint_leaves_the_run_folder_untouched(scene_dir, tmp_pat
     assert_one_error(code, err, "does not fit this run", field)
 
 
+@pytest.mark.parametrize("where, words", [
+    ("a-folder-of-the-users", "not written by nimbus-train"),  # used to be emptied, then trained into
+    ("a-results-store", "not written by nimbus-train"),
+    ("inside-another-scene", "lies inside the scene"),
+    ("inside-a-results-store", "lies inside the results store"),
+])
+def test_out_overwrite_replaces_only_a_run_folder_of_nimbus_train(scene_dir, tmp_path, capsys, where, words):
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "thesis.tex").write_text("mine")
+    (tmp_path / "bench").mkdir()
+    (tmp_path / "bench" / "results.jsonl").write_text('{"cell_id": "a", "status": "ok"}\n')
+    (tmp_path / "other" / "sparse" / "0").mkdir(parents=True)
+    (tmp_path / "other" / "sparse" / "0" / "cameras.txt").write_text("# a COLMAP model\n")
+    out = {"a-folder-of-the-users": tmp_path / "mine", "a-results-store": tmp_path / "bench",
+           "inside-another-scene": tmp_path / "other" / "run", "inside-a-results-store": tmp_path / "bench" / "run"}[where]
+    before = snapshot(tmp_path)
+    code, err = cli([scene_dir, *FAST, "--out", out, "--overwrite"], capsys)
+    assert_one_error(code, err, "--out", words, "nothing was written or deleted")
+    assert snapshot(tmp_path) == before and out.exists() == where.startswith("a-")  # no folder made either
+
+
 # --- 3. a garbage model writes no results ------------------------------------------------------------------
 def _poisoned(after_step):
     """``after_step`` that then, after the last step, turns one Gaussian's opacity NaN (the loss guard has

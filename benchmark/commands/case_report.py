@@ -26,7 +26,7 @@ def add_report_arguments(p: argparse.ArgumentParser, out: str, files: str, kept:
         more(p)
     p.add_argument("--work", default=None, metavar="DIR",
                    help=f"keep the {kept} in DIR (default: a temporary folder, removed afterwards)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
+    p.add_argument("--overwrite", action="store_true", help="replace this command's earlier --out folder (any other is refused)")
     p.add_argument("--list", action="store_true", help="describe the cases and exit")
 
 

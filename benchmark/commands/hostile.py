@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from benchmark.commands.case_report import add_report_arguments, list_cases, run_and_report
-from benchmark.hostile import make_removable, get_cases, run_report, to_markdown, write_report
+from benchmark.hostile import OWNER, make_removable, get_cases, run_report, to_markdown, write_report
 
 HELP = "run hostile and faulty inputs through nimbus-synth / -train / -bench in sandboxes: outcome, inputs " \
        "modified, writes outside --out, partial output, time and memory"
@@ -22,7 +22,7 @@ def run(args: argparse.Namespace) -> int:
     cases = get_cases(args.cases)
     if args.list:
         return list_cases(cases, 28, lambda c: f"expected: {c.expect}; {c.command}")
-    check_output_dir(args.out, args.overwrite)  # before any work: a bad --out should not cost a run
+    check_output_dir(args.out, args.overwrite, owner=OWNER)  # before any work: a bad --out should not cost a run
     return run_and_report(
         args, "nimbus-hostile-", lambda work: run_report(cases, work),
         write=lambda rows, wall: write_report(args.out, rows, cases, overwrite=args.overwrite, wall_s=wall),

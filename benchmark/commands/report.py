@@ -16,7 +16,7 @@ EXAMPLE = "nimbus-bench report --root bench_runs --out report/"
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--root", default="bench_runs", help="benchmark folder holding results.jsonl")
     p.add_argument("--out", default="report", help="folder for index.html and images/ (replaced as a whole)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty --out folder")
+    p.add_argument("--overwrite", action="store_true", help="replace an earlier report in --out (a folder this command wrote; any other is refused)")
     p.add_argument("--views", type=int, default=DEFAULT_VIEWS, help="test views shown per scene and setting")
     p.add_argument("--thumb-width", type=int, default=THUMB_WIDTH, help="largest thumbnail width in pixels")
     p.add_argument("--copy-full", action="store_true",

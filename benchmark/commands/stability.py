@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 
 from benchmark.commands.case_report import add_report_arguments, list_cases, run_and_report
-from benchmark.stability import (DEFAULT_ITERATIONS, DEFAULT_PRESET, DEFAULT_SCENE, DEFAULT_SIZE, StabilityOptions,
-                                 get_cases, run_report, to_markdown, write_report)
+from benchmark.stability import (DEFAULT_ITERATIONS, DEFAULT_PRESET, DEFAULT_SCENE, DEFAULT_SIZE, OWNER,
+                                 StabilityOptions, get_cases, run_report, to_markdown, write_report)
 from nimbus.errors import NimbusError
 
 HELP = "run extreme inputs (no / opaque haze, black / white images, one view, degenerate Gaussians) through " \
@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     if args.list:
         return list_cases(cases, 20, lambda c: f"input: {c.input_summary}; methods: {', '.join(c.methods)}; "
                                                f"expected: {c.expect}")
-    check_output_dir(args.out, args.overwrite)  # before any work: a bad --out should not cost a run
+    check_output_dir(args.out, args.overwrite, owner=OWNER)  # before any work: a bad --out should not cost a run
     get_scene(args.scene)
     get_size(args.size)
     if args.iterations < 2:

@@ -21,6 +21,9 @@ from nimbus.config_set import apply_overrides, parse_set_args
 from nimbus.methods.registry import METHODS, get_method
 from nimbus.train.run_folder import check_downscale, load_scene_arg, scene_input_folder
 
+#: Names this command in its run folder's marker: --overwrite empties only a run folder it made itself.
+OWNER = "nimbus-train"
+
 def parse_device(spec: str | None):
     """``--device`` as a torch device Nimbus can train on (None: the default), else NimbusError."""
     import torch
@@ -58,7 +61,7 @@ def build_parser() -> ArgumentParser:
     p.add_argument("--seed", type=seed_arg, default=0, help=f"training seed in [0, {MAX_SEED}]")
     p.add_argument("--downscale", type=int, default=1,
                    help="use images_N of a Mip-NeRF360-style scene folder (not for builtin: scenes)")
-    p.add_argument("--overwrite", action="store_true", help="replace a non-empty run directory")
+    p.add_argument("--overwrite", action="store_true", help="replace a run directory an earlier nimbus-train made (any other folder is refused)")
     p.add_argument("--resume", metavar="RUN", help="continue an interrupted run from its checkpoint")
     p.add_argument("--device", default=None, help="torch device: cpu or cuda[:N] (default: cuda if available)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -75,7 +78,7 @@ def _resume(args, device):
 
 def _new_run(args, device):
     from nimbus.train.runner import Runner
-    from nimbus.utils.fs import check_output_dir
+    from nimbus.utils.fs import check_output_dir, mark_output
 
     if not args.scene or not args.out:
         raise NimbusError("give a SCENE and --out RUN (or --resume RUN); see nimbus-train --help")
@@ -91,8 +94,9 @@ def _new_run(args, device):
         overrides["components"] = args.components
     config = apply_overrides(base, overrides)
     check_downscale(args.scene, args.downscale)
-    # Before anything is deleted: --out SCENE --overwrite (or an ancestor of the scene) would remove the input.
-    out = check_output_dir(args.out, args.overwrite, inputs=[scene_input_folder(args.scene)])
+    # Before anything is deleted: --out SCENE --overwrite (or an ancestor of the scene) would remove the input,
+    # and --overwrite of a folder this command did not make (a store, a home folder) would empty it.
+    out = check_output_dir(args.out, args.overwrite, inputs=[scene_input_folder(args.scene)], owner=OWNER)
     scene = load_scene_arg(args.scene, args.downscale)
     if args.overwrite and out.is_dir():
         # Emptied rather than removed: that needs no write access to its parent, and keeps the folder's mode.
@@ -106,6 +110,8 @@ def _new_run(args, device):
     created = next((p for p in reversed([out, *out.parents]) if not p.exists()), None)
     load_args = {"downscale": args.downscale} if args.downscale != 1 else {}
     try:
+        out.mkdir(parents=True, exist_ok=True)
+        mark_output(out, OWNER)  # before training: a killed run's folder is this command's to replace
         runner = Runner(args.method, scene, config, out, seed=args.seed, scene_path=args.scene,
                         scene_load_args=load_args, progress=not args.quiet, device=device)
         return runner.run(), runner

@@ -112,21 +112,42 @@ def refuse_overlap(out: str | os.PathLike, inputs, flag: str = "--out") -> None:
                               "(nothing was written or deleted)")
 
 
-def check_output_dir(out: str | os.PathLike, overwrite: bool, inputs=(), flag: str = "--out") -> Path:
+#: The file a command writes into its output folder, naming the command: ``--overwrite`` replaces a folder only
+#: when it holds this file naming the same command (:func:`check_output_dir`), i.e. the command's own earlier output.
+OUTPUT_MARKER = ".nimbus-output"
+#: What marks a folder as a results store (``benchmark.store.STORE_FILE``) or a scene (a COLMAP model where
+#: ``nimbus.data.colmap.find_sparse_dir`` looks, a transforms file): no command's output folder goes inside one.
+STORE_OR_SCENE_FILES = ("results.jsonl", "sparse/0/cameras.bin", "sparse/0/cameras.txt", "sparse/cameras.bin",
+                        "sparse/cameras.txt", "transforms.json", "transforms_train.json")
+
+
+def check_output_dir(out: str | os.PathLike, overwrite: bool, inputs=(), flag: str = "--out",
+                     owner: str | None = None) -> Path:
     """Refuse an unusable output directory before any work starts.
 
     Refused: an existing non-empty directory unless ``overwrite``; a path that exists and is
     not a directory; a path under a file; a folder that cannot be created or written
     (read-only, no permission); and a folder that is, contains or lies inside any of
     ``inputs`` (see :func:`refuse_overlap`).  Nothing is created or deleted here.
+
+    With ``owner`` (the command, e.g. ``"nimbus-bench report"``), the rule of a command that replaces its
+    output folder as a whole: ``overwrite`` replaces only that command's own earlier output, a folder holding
+    an :data:`OUTPUT_MARKER` that names ``owner`` (:func:`mark_output`; :func:`atomic_dir` writes it); any
+    other non-empty folder is refused, and so is a folder inside a results store or a scene
+    (:data:`STORE_OR_SCENE_FILES`), whose files are not the command's to replace or mix with.
     """
     out = Path(out)
     refuse_overlap(out, inputs, flag)
     try:
         if out.exists() and not out.is_dir():
             raise NimbusError(f"{flag} {out} exists and is not a directory; choose another {flag}")
-        if out.is_dir() and any(out.iterdir()) and not overwrite:
-            raise NimbusError(f"{flag} {out} is not empty; pass --overwrite to replace it or choose another {flag}")
+        if owner is not None:
+            _refuse_inside_store_or_scene(out, flag)
+        if out.is_dir() and any(out.iterdir()):
+            if not overwrite:
+                raise NimbusError(f"{flag} {out} is not empty; pass --overwrite to replace it or choose another {flag}")
+            if owner is not None:
+                _refuse_foreign(out, owner, flag)
         probe = out if out.is_dir() else next((p for p in out.resolve().parents if p.exists()), None)
     except PermissionError:
         raise NimbusError(f"{flag} {out} cannot be read (permission denied); choose another {flag}") from None
@@ -137,16 +158,45 @@ def check_output_dir(out: str | os.PathLike, overwrite: bool, inputs=(), flag: s
     return out
 
 
+def _refuse_inside_store_or_scene(out: Path, flag: str) -> None:
+    for folder in out.resolve().parents:
+        found = next((f for f in STORE_OR_SCENE_FILES if (folder / f).is_file()), None)
+        if found is not None:
+            kind = "results store" if found == STORE_OR_SCENE_FILES[0] else "scene"
+            raise NimbusError(f"{flag} {out} lies inside the {kind} {folder} (it holds {found}); write outputs apart "
+                              f"from stores and scenes: choose another {flag} (nothing was written or deleted)")
+
+
+def _refuse_foreign(out: Path, owner: str, flag: str) -> None:
+    try:
+        made_by = (out / OUTPUT_MARKER).read_text(encoding="utf-8").strip()
+    except (OSError, UnicodeDecodeError):
+        made_by = None
+    if made_by != owner:
+        by = f"by {shown(made_by)}" if made_by else f"by {owner} (it has no {OUTPUT_MARKER} naming it)"
+        raise NimbusError(f"{flag} {out} was not written {by}; --overwrite replaces only {owner}'s own earlier "
+                          f"output: choose another {flag}, or empty the folder yourself (nothing was written or "
+                          "deleted)")
+
+
+def mark_output(folder: str | os.PathLike, owner: str) -> None:
+    """Write :data:`OUTPUT_MARKER` naming ``owner`` into ``folder``: a later ``--overwrite`` of ``owner`` may replace
+    it (:func:`check_output_dir`)."""
+    atomic_write_text(Path(folder) / OUTPUT_MARKER, owner + "\n")
+
+
 @contextlib.contextmanager
-def atomic_dir(out: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
+def atomic_dir(out: str | os.PathLike, overwrite: bool = False, owner: str | None = None) -> Iterator[Path]:
     """Build a directory at a temporary path and move it to ``out`` on success.
 
     Yields the temporary directory to write into.  On any exception (including
     KeyboardInterrupt) the temporary directory is removed and ``out`` is left as
     it was.  An existing non-empty ``out`` is refused unless ``overwrite``; when
     overwriting, the old directory is removed only after the new one is complete.
+    With ``owner``, :func:`check_output_dir`'s rule of replacing only ``owner``'s own
+    output applies, and the finished folder is marked as ``owner``'s (:func:`mark_output`).
     """
-    out = check_output_dir(out, overwrite)
+    out = check_output_dir(out, overwrite, owner=owner)
     # A folder left by a killed run (``.NAME.tmp-*`` whose process is gone) is ours to remove.
     remove_stale_temps(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -156,6 +206,8 @@ def atomic_dir(out: str | os.PathLike, overwrite: bool = False) -> Iterator[Path
     try:
         yield tmp
         (tmp / ".owner").unlink(missing_ok=True)
+        if owner is not None:
+            mark_output(tmp, owner)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
