@@ -16,7 +16,7 @@ COLUMNS = (
     Column("pixels_pct", "Pixels %", r"Pixels \%", 1),
     Column("t_true", "t true", "$t$", 3),
     Column("t_bias", "T bias", "$T$ bias", 3),
-    Column("t_mae", "|T-t|", "$|T-t|$", 3),
+    Column("t_mae", "T MAE", "$T$ MAE", 3),
     Column("airlight_error_r", "A err R", "$A$ err R", 3),
     Column("airlight_error_g", "A err G", "$A$ err G", 3),
     Column("airlight_error_b", "A err B", "$A$ err B", 3),
