@@ -20,6 +20,10 @@ Sections:
   (``auto`` or forced) with its evidence (``results.json``), and the decomposition I_in | clean
   render | T | P | R of a few training views (``decomposition/*.png``, written by
   :meth:`nimbus.methods.nimbusgs.NimbusGS.write_outputs`).
+* **Decomposition against the ground truth**: per cell whose run folder holds a ``nimbus-bench decompose``
+  record (``RUN/decompose/decompose.json``), its table of learned T, airlight and clean-render bias per depth
+  band (:mod:`benchmark.tables.decompose`); the cells of medium-modelling methods on a hazy setting that have
+  none are listed with the command that makes it (the report reads records; it loads no model).
 * **Trade-off** and **stability**: the files ``nimbus-bench tradeoff`` / ``stability`` wrote, when
   found in ``ROOT/`` or ``ROOT/*/`` (or given): the Pareto plot and the tables.
 * **Provenance**: the commands that reproduce the cells (rebuilt from the records: the store keeps
@@ -467,6 +471,57 @@ def nimbus_sections(root: Path, recs: list[dict], images: ImageWriter) -> str:
     return "\n".join(out)
 
 
+# --- decomposition against the ground truth ------------------------------------------------------
+def models_medium(results: dict) -> bool:
+    """Whether a run's ``results.json`` is a medium-modelling method's: NimbusGS with CSM, or medium-3dgs."""
+    nimbus = results.get("nimbus")
+    return ((isinstance(nimbus, dict) and "csm" in (nimbus.get("components") or []))
+            or isinstance(results.get("medium"), dict))
+
+
+def decomposition_sections(root: Path, recs: list[dict], images: ImageWriter) -> str:
+    """Per cell with a ``nimbus-bench decompose`` record in its run folder (``RUN/decompose/decompose.json``): its
+    table (and a link to its ``decompose.md``); per other finished cell of a medium-modelling method on a setting
+    with haze: the command that makes one (the report reads records, it re-renders no model)."""
+    from dataclasses import replace
+
+    from benchmark.decompose import DEFAULT_DIR, MARKDOWN, RECORD
+    from benchmark.tables.decompose import NOTES, decompose_table
+    from weather_synth.settings import parse_family_setting
+
+    out, missing = [], []
+    for r in recs:
+        if r.get("status") != "ok" or not r.get("run_dir"):
+            continue
+        run = root / r["run_dir"]
+        record = read_json(run / DEFAULT_DIR / RECORD)
+        if isinstance(record.get("bands"), dict):
+            md = run / DEFAULT_DIR / MARKDOWN
+            name = f"decompose-{r['cell_id']}"
+            link = f' · <a href="{url(images.full(md, name))}">{e(MARKDOWN)}</a>' if md.is_file() else ""
+            out.append(f'<h3>{e(r["cell_id"])}</h3><p class="note">{e(record.get("views", "?"))} training views at '
+                       f'iteration {e(record.get("iteration", "?"))}{link}</p><div class="wide">'
+                       + table_html(replace(decompose_table(record), notes=[])) + "</div>")
+            continue
+        try:
+            hazy = parse_family_setting(r.get("weather", "")).setting.haze
+        except NimbusError:
+            hazy = False
+        if hazy and models_medium(read_json(run / "results.json")):
+            missing.append(r)
+    if not out and not missing:
+        return ""
+    text = []
+    if out:
+        text.append('<p class="note">' + " ".join(f"{e(n)}." for n in NOTES) + "</p>")
+    text += out
+    if missing:
+        text.append('<p class="note">Not checked yet (run the command, then this report again): '
+                    + "; ".join(f"<code>nimbus-bench decompose {e(shlex.quote(str(root / r['run_dir'])))}</code>"
+                                for r in missing) + "</p>")
+    return "\n".join(text)
+
+
 # --- trade-off, stability ------------------------------------------------------------------------
 def extra_sections(root: Path, images: ImageWriter, options: ReportOptions) -> tuple[str, str]:
     """The trade-off and stability sections' HTML (empty strings when there is nothing to show)."""
@@ -636,6 +691,9 @@ def build_page(root: Path, tmp: Path, out: Path, options: ReportOptions, command
     nimbus = nimbus_sections(root, recs, images)
     if nimbus:
         sections.append(("nimbus", "NimbusGS: component decision and decomposition", nimbus))
+    decomposition = decomposition_sections(root, recs, images)
+    if decomposition:
+        sections.append(("decompose", "Decomposition against the ground truth", decomposition))
     trade, stab = extra_sections(root, images, options)
     if trade:
         sections.append(("tradeoff", "Speed / accuracy trade-off", trade))

@@ -12,6 +12,7 @@ module                          role
 :mod:`.runtime`                 complexity / runtime (``runtime``), ours and the paper's
 :mod:`.provenance`              the counted cells by device, CPU ISA, torch and code; the same-input check
 :mod:`.summary`                 the plain-text summary ``nimbus-bench run`` prints
+:mod:`.decompose`               one run's decomposition against the ground truth (``nimbus-bench decompose``)
 ==============================  ==============================================================
 
 A layout module builds :class:`~.model.Table` objects: ``tables(df, method_order) -> (tables,
