@@ -21,6 +21,14 @@ checkpoint was not cut in the middle of a step; anything else it leaves is remov
 cell trains from the start.  A resumed cell's record says so (``resumed_from_iteration``); its
 training time includes the part before the interruption (the checkpoint carries it).
 
+The clean ceiling: a cell whose setting is :data:`CEILING` (``clean``) trains 3DGS
+(:data:`CEILING_METHOD`) on the clean scene folder itself, ``scenes/<scene>-<size>/``: the same
+views, split, preset and seed as the weather cells, without the weather, scored against the same
+clean test views.  The tables measure each method's loss to the weather against it
+(:mod:`benchmark.tables.ceiling`).  It is an ordinary cell otherwise (one id, one run folder, one
+record, resumed alike); ``clean`` is no weather token (:mod:`weather_synth.settings`), so its ids
+never collide with a weather cell's.
+
 :func:`run_cell` is the one way a cell runs, whoever asks (:mod:`benchmark.grid` for
 ``nimbus-bench run`` and ``tradeoff``).  The stability report trains on inputs of its own
 making, so it uses the steps below it: :func:`train_method` (the grid's and the
@@ -55,6 +63,10 @@ SCENE_SEED = 0
 SYNTH_SEED = 0
 #: The default family's synthesis protocol (the paper's data); other families are named ``SETTING@PROTOCOL``.
 SYNTH_PROTOCOL = DEFAULT_PROTOCOL
+#: The setting of a clean-ceiling cell: its data folder is the clean scene (module docstring).
+CEILING = "clean"
+#: The method the clean ceiling trains (plain 3DGS: the weather's cost to the method every other one builds on).
+CEILING_METHOD = "3dgs"
 DEFAULT_PRESET = "tiny"
 DEFAULT_SIZE = "tiny"
 PARTIAL_SUFFIX = ".partial"
@@ -76,7 +88,8 @@ class Cell:
         Built-in scene name (``garden``, ``street``, ``tabletop``).
     weather : str
         Weather setting name (``H``, ``R+S``, ...), ``@PROTOCOL`` for a setting of another synthesis
-        protocol's family (``H@physical``; :func:`weather_synth.settings.parse_family_setting`).
+        protocol's family (``H@physical``; :func:`weather_synth.settings.parse_family_setting`), or
+        :data:`CEILING` for a clean-ceiling cell (trained on the clean scene).
     method : str
         Registered method name (:mod:`nimbus.methods.registry`).
     preset : str
@@ -108,6 +121,11 @@ class Cell:
     @property
     def data_name(self) -> str:
         return f"{self.scene}-{self.size}"
+
+    @property
+    def is_ceiling(self) -> bool:
+        """Whether this is a clean-ceiling cell (trained on the clean scene, not a weather setting)."""
+        return self.weather == CEILING
 
     def to_dict(self) -> dict:
         return {**dataclasses.asdict(self), "overrides": dict(self.overrides)}
@@ -159,7 +177,9 @@ def family_dir(root: Path, data_name: str, protocol: str) -> Path:
 
 
 def data_dir(root: Path, cell: Cell) -> Path:
-    """The degraded setting folder a cell trains on."""
+    """The folder a cell trains on: its degraded setting folder, or the clean scene for a clean-ceiling cell."""
+    if cell.is_ceiling:
+        return scene_dir(root, cell)
     family = parse_family_setting(cell.weather)
     return family_dir(root, cell.data_name, family.protocol) / family.setting.name
 
@@ -207,6 +227,8 @@ def prepare_data(root: str | os.PathLike, cells: Iterable[Cell], progress: bool 
                  log: Callable[[str], None] | None = None) -> None:
     """Render the clean scenes and synthesise the degraded settings the cells need and the root lacks.
 
+    A clean-ceiling cell needs the clean scene only.
+
     Both steps write atomically (a folder appears only when complete) with fixed seeds, so a
     run interrupted here resumes by simply doing what is still missing.  Each scene's data is
     prepared under its data lock: a second run waits for the first, then finds the data
@@ -219,8 +241,11 @@ def prepare_data(root: str | os.PathLike, cells: Iterable[Cell], progress: bool 
     need: dict[Cell, dict[str, list[str]]] = {}  # scene -> protocol family -> setting names
     for c in cells:
         key = Cell(c.scene, "", "", size=c.size)
+        families = need.setdefault(key, {})
+        if c.is_ceiling:
+            continue
         family = parse_family_setting(c.weather)
-        names = need.setdefault(key, {}).setdefault(family.protocol, [])
+        names = families.setdefault(family.protocol, [])
         if family.setting.name not in names:
             names.append(family.setting.name)
     store = ResultsStore(root)
@@ -480,8 +505,8 @@ def run_cell(cell: dict | Cell, root: str, options: CellOptions | None = None) -
         resumed after an interruption, whose record has ``resumed_from_iteration``), ``num_gaussians``,
         ``num_params`` (+ ``num_params_source``), ``render_fps``, ``iterations``;
         ``config``, ``config_hash``; ``versions``; ``input_sha256`` (the degraded dataset's
-        manifest), ``output_sha256`` (render name -> sha256); ``run_dir`` (relative to
-        root); ``started_at`` / ``finished_at`` (UTC ISO 8601) and ``wall_time_s``.
+        manifest; the clean scene's for a clean-ceiling cell), ``output_sha256`` (render name ->
+        sha256); ``run_dir`` (relative to root); ``started_at`` / ``finished_at`` (UTC ISO 8601) and ``wall_time_s``.
     """
     options = options or CellOptions()
     return score_cell(train_cell(cell, root, options), root, options)

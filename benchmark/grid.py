@@ -39,8 +39,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator, Protocol, Sequence
 
-from benchmark.cell import (DEFAULT_SIZE, Cell, CellOptions, error_record, make_config, prepare_data, run_cell,
-                            utc_now)
+from benchmark.cell import (CEILING, CEILING_METHOD, DEFAULT_SIZE, Cell, CellOptions, error_record, make_config,
+                            prepare_data, run_cell, utc_now)
 from benchmark.store import FileLock, ResultsStore
 from nimbus.errors import NimbusError
 from nimbus.utils.cpus import usable_cpus
@@ -80,14 +80,20 @@ def split_names(spec: str, what: str) -> list[str]:
 
 
 def build_cells(scenes: Sequence[str], weathers: Sequence[str], methods: Sequence[str], presets: Sequence[str],
-                seeds: Sequence[int], size: str = DEFAULT_SIZE, overrides: dict[str, str] | None = None) -> list[Cell]:
+                seeds: Sequence[int], size: str = DEFAULT_SIZE, overrides: dict[str, str] | None = None,
+                ceiling: bool = False) -> list[Cell]:
     """Every combination, in table order (scene, weather, method, preset, seed); validated before any work.
+
+    With ``ceiling``, each scene's cells are preceded by its clean-ceiling cells
+    (:data:`~benchmark.cell.CEILING`): 3DGS on the clean scene, one per preset and seed, with the
+    same ``overrides``; one per scene, however many weathers and methods the grid has.
 
     Raises
     ------
     NimbusError
         Unknown scene, size, weather (``H+R``, ``H+R@physical``: :mod:`weather_synth.settings`), method
-        or preset, a negative seed, or an override the method's config does not have.
+        or preset, a negative seed, or an override the method's config (or, with ``ceiling``, 3DGS's) does
+        not have.
     """
     from nimbus.data.builtin import get_scene, get_size
     from nimbus.methods.registry import get_method
@@ -104,9 +110,18 @@ def build_cells(scenes: Sequence[str], weathers: Sequence[str], methods: Sequenc
     for m in methods:
         for p in presets:
             make_config(get_method(m), p, dict(ov))  # a bad preset or --set fails here, not in a worker
+    if ceiling and CEILING_METHOD not in methods:
+        for p in presets:
+            try:
+                make_config(get_method(CEILING_METHOD), p, dict(ov))
+            except NimbusError as e:
+                raise NimbusError(f"{e} (the clean ceiling trains {CEILING_METHOD} with the grid's preset and --set; "
+                                  "pass --no-ceiling to run without it)") from None
     # A name or seed given twice is one cell: two copies of a cell would train into one run folder at once.
-    return list(dict.fromkeys(Cell(sc, w, m, p, int(seed), size, ov) for sc in scenes for w in weathers
-                              for m in methods for p in presets for seed in seeds))
+    return list(dict.fromkeys(c for sc in scenes for c in [
+        *(Cell(sc, CEILING, CEILING_METHOD, p, int(seed), size, ov) for p in presets for seed in seeds if ceiling),
+        *(Cell(sc, w, m, p, int(seed), size, ov) for w in weathers for m in methods for p in presets
+          for seed in seeds)]))
 
 
 # --- executors -----------------------------------------------------------------------------------

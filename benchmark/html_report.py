@@ -10,12 +10,15 @@ Sections:
 
 * **Summary**: per weather setting x method, the mean PSNR / SSIM / LPIPS / training time over the
   finished cells (every scene and seed, as ``nimbus-bench run`` prints it), with cell and error
-  counts; best and second best marked per setting; sortable by clicking a column head.
+  counts; best and second best marked per setting; sortable by clicking a column head.  With
+  clean-ceiling cells (:mod:`benchmark.tables.ceiling`) the ceiling is the first block and a
+  ``ΔPSNR vs clean`` column gives each row's gap to it.
 * **Test views**: per scene and setting, a few test views (:attr:`ReportOptions.views`, evenly
-  spaced over the split): the degraded input, each cell's render, the clean view, each captioned
-  with its PSNR against the clean view (the record's per-view value where it has one, else computed
-  here with the benchmark's protocol, :func:`nimbus.metrics.peak_signal_noise_ratio`).  Clicking an
-  image enlarges it; a switch shows ``|image - clean| x`` :data:`DIFF_GAIN` instead.
+  spaced over the split): the degraded input, each cell's render (the clean ceiling's too), the
+  clean view, each captioned with its PSNR against the clean view (the record's per-view value where
+  it has one, else computed here with the benchmark's protocol,
+  :func:`nimbus.metrics.peak_signal_noise_ratio`).  Clicking an image enlarges it; a switch shows
+  ``|image - clean| x`` :data:`DIFF_GAIN` instead.
 * **NimbusGS**: for every cell whose run folder holds a NimbusGS record, the component decision
   (``auto`` or forced) with its evidence (``results.json``), and the decomposition I_in | clean
   render | T | P | R of a few training views (``decomposition/*.png``, written by
@@ -53,6 +56,8 @@ from urllib.parse import quote
 
 import numpy as np
 
+from benchmark.cell import CEILING
+from benchmark.tables import ceiling
 from benchmark.tables.model import Block, Column, Row, Table, finite
 from benchmark.tables.results import METRIC_COLUMNS, finished, labelled, ordered, protocols
 from nimbus.errors import NimbusError
@@ -84,6 +89,8 @@ STABILITY_FILES = ("stability.csv", "stability.md", "stability.json")
 TIME_COLUMN = Column("train_time_s", "Train s↓", "Train s", 1, higher_is_better=False)
 COUNT_COLUMNS = (Column("cells", "Cells", "Cells"), Column("errors", "Errors", "Errors"))
 SUMMARY_COLUMNS = (*METRIC_COLUMNS, TIME_COLUMN, *COUNT_COLUMNS)
+#: The summary's gap to the clean ceiling, shown when the store has one.
+GAP_COLUMN = Column("d_psnr_ceiling", "ΔPSNR vs clean", r"$\Delta$PSNR vs clean", 2)
 MARK_CLASS = {1: "best", 2: "second"}
 
 
@@ -227,26 +234,34 @@ def summary_table(df, method_order: Sequence[str] = ()) -> Table:
 
     ok = finished(df)
     ssim_protocol, lp = protocols(ok)
+    ceilings = ceiling.split(ok)[1]
     every = labelled(df.copy())
     blocks = []
-    for w in ordered(ok["weather"], ALL_SETTING_NAMES):
+    for w in ordered(ok["weather"], (CEILING, *ALL_SETTING_NAMES)):
         sub = every[every["weather"] == w]
         rows = []
         for m in ordered(sub["method_label"], method_order):
             g = sub[sub["method_label"] == m]
             good = g[g["status"] == "ok"]
-            row = Row(m, fields={"method": m})
+            row = Row(ceiling.label(m) if w == CEILING else m, fields={"method": m})
             for col in (*METRIC_COLUMNS, TIME_COLUMN):
                 v = good[col.key].astype(float)
                 row.values[("", col.key)] = None if len(v) == 0 or v.isna().any() else float(v.mean())
             row.values[("", "cells")] = float(len(g))
             row.values[("", "errors")] = float(len(g) - len(good))
+            if len(ceilings) and w != CEILING:
+                row.values[("", GAP_COLUMN.key)] = ceiling.mean_gap(good, ceilings)
             rows.append(row)
         blocks.append(Block(rows, name=w, fields={"weather": w}))
-    return Table("summary", "summary", "Summary", SUMMARY_COLUMNS, [""], blocks, lead=("Method", "Weather"),
-                 notes=[f"Means over the finished cells of each setting (every scene and seed) against the clean "
-                        f"test views; SSIM protocol: {ssim_protocol}; LPIPS: {lp}; Train s: the training loop's "
-                        "wall-clock seconds. Best and second best marked per setting."])
+    notes = [f"Means over the finished cells of each setting (every scene and seed) against the clean "
+             f"test views; SSIM protocol: {ssim_protocol}; LPIPS: {lp}; Train s: the training loop's "
+             "wall-clock seconds. Best and second best marked per setting."]
+    if len(ceilings):
+        notes.append(f"{CEILING} = the clean ceiling, {ceiling.LABEL}: 3dgs trained on the clean training views; "
+                     f"{GAP_COLUMN.text} = the mean over a row's finished cells of the cell's PSNR minus its scene's "
+                     "ceiling (same size and preset), dB.")
+    columns = (*SUMMARY_COLUMNS, GAP_COLUMN) if len(ceilings) else SUMMARY_COLUMNS
+    return Table("summary", "summary", "Summary", columns, [""], blocks, lead=("Method", "Weather"), notes=notes)
 
 
 def table_html(table: Table) -> str:
@@ -318,11 +333,15 @@ def view_grids(root: Path, recs: list[dict], images: ImageWriter, options: Repor
     for scene in ordered(record_data_name(r) for r in ok):
         out.append(f'<h3 id="views-{e(scene)}">{e(scene)}</h3>')
         here = [r for r in ok if record_data_name(r) == scene]
-        for w in ordered((r["weather"] for r in here), ALL_SETTING_NAMES):
+        # The clean ceiling has no weather of its own: its renders stand beside every setting's, before the clean view.
+        ceilings = [r for r in here if r["weather"] == CEILING]
+        ceiling_labels = [ceiling.label(lab) for lab in column_labels(ceilings)]
+        for w in ordered((r["weather"] for r in here if r["weather"] != CEILING), ALL_SETTING_NAMES):
             cells = [r for r in here if r["weather"] == w]
             order = ordered((r["method"] for r in cells), options.method_order)
             cells.sort(key=lambda r: order.index(r["method"]))
-            labels = column_labels(cells)
+            labels = column_labels(cells) + ceiling_labels
+            cells += ceilings
             family = parse_family_setting(w)
             data = family_dir(root, scene, family.protocol) / family.setting.name
             names = ordered(v["name"] for r in cells for v in (r.get("per_view") or []))
@@ -548,15 +567,22 @@ def reproduce_commands(recs: Iterable[dict], root: str) -> list[str]:
 
     Cells are grouped by what one command fixes (size, preset, overrides, scoring protocols); within a
     group, (scene, setting) pairs with the same (methods x seeds) are gathered, and scenes sharing their
-    settings make one command.
+    settings make one command.  A command runs the clean ceiling of its scenes and seeds unless told
+    ``--no-ceiling``, which it is where those ceiling cells are not all in ``recs``; a ceiling cell whose
+    scene, preset and seed have no weather cell is not reproduced (no command runs a ceiling alone).
     """
     groups: dict[tuple, dict[tuple[str, str], set[tuple[str, int]]]] = {}
+    ceilings: set[tuple] = set()
     for r in recs:
         key = (r.get("size"), r.get("preset"), tuple(sorted((r.get("overrides") or {}).items())),
                r.get("ssim_protocol") or "3dgs", r.get("lpips_net") or "none")
+        if r["weather"] == CEILING:
+            ceilings.add((key, r["scene"], int(r["seed"])))
+            continue
         groups.setdefault(key, {}).setdefault((r["scene"], r["weather"]), set()).add((r["method"], int(r["seed"])))
     lines = []
-    for (size, preset, overrides, ssim, lpips), pairs in groups.items():
+    for key, pairs in groups.items():
+        size, preset, overrides, ssim, lpips = key
         by_signature: dict[tuple, dict[str, list[str]]] = {}
         for (scene, weather), ms in pairs.items():
             methods = sorted({m for m, _ in ms})
@@ -578,6 +604,8 @@ def reproduce_commands(recs: Iterable[dict], root: str) -> list[str]:
                         "--root", root]
                 for k, v in overrides:
                     argv += ["--set", f"{k}={v}"]
+                if not {(key, scene, seed) for scene in scene_list for seed in seeds} <= ceilings:
+                    argv.append("--no-ceiling")
                 lines.append(shlex.join(argv))
     return lines
 
@@ -621,7 +649,8 @@ def provenance_html(root: Path, recs: list[dict], command: str | None) -> str:
                 shorten(r.get("error") or "", 160))
         rows.append("<tr>" + "".join(f"<td>{e(v)}</td>" for v in vals) + "</tr>")
     out.append("<h3>Cells</h3><p class=\"note\">config / input: the first 12 hex digits of the sha256 of the "
-               "config and of the degraded dataset's manifest.</p><div class=\"wide\"><table class=\"sortable\">"
+               "config and of the degraded dataset's manifest (the clean scene's, for the clean ceiling).</p>"
+               "<div class=\"wide\"><table class=\"sortable\">"
                "<thead><tr>" + "".join(f"<th>{e(h)}</th>" for h in heads) + "</tr></thead><tbody>"
                + "\n".join(rows) + "</tbody></table></div>")
     return "\n".join(out)

@@ -210,13 +210,16 @@ def decode_fingerprint(text: str) -> np.ndarray:
 def input_fingerprint(data: str | Path) -> dict | None:
     """``{view name: {"image": fingerprint, "clean": fingerprint}}`` of a degraded setting folder (every view
     its manifest lists: the degraded image training reads and the clean image it is scored against), or
-    None when the folder has no manifest."""
+    None when the folder has no manifest or is no degraded setting (a clean-ceiling cell's clean scene, whose
+    manifest lists no views)."""
     from weather_synth.dataset import MANIFEST
 
     data = Path(data)
     if not (data / MANIFEST).is_file():
         return None
-    views = json.loads((data / MANIFEST).read_text())["views"]
+    views = json.loads((data / MANIFEST).read_text()).get("views")
+    if views is None:
+        return None
     return {v["name"]: {"image": image_fingerprint(data / v["image"]), "clean": image_fingerprint(data / v["clean"])}
             for v in views}
 

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from benchmark import cell, grid
-from benchmark.cell import CellOptions, data_dir, run_dir
+from benchmark.cell import CEILING, CellOptions, data_dir, run_dir, scene_dir
 from benchmark.cli import TOOL
 from benchmark.grid import DaskExecutor, InlineExecutor, LocalExecutor, build_cells, run_grid
 from benchmark.store import ResultsStore, load_results
@@ -114,6 +114,22 @@ def test_a_cell_named_twice_is_one_cell(tmp_path, capsys):
         assert run_cli(TOOL.run, ["run", flag, ",", "--root", str(tmp_path / "r")]) == 2
         assert f"{flag} is empty" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()
+
+
+def test_the_clean_ceiling_is_one_cell_per_scene_preset_and_seed():
+    cs = build_cells(["garden", "street"], ["H", "R"], ["3dgs", "nimbus"], ["tiny"], [0, 1], ceiling=True)
+    ceilings = [c for c in cs if c.is_ceiling]
+    # per scene x preset x seed, not per weather or method; 3dgs among the methods is a cell of its own
+    assert [c.cell_id for c in ceilings] == ["garden-tiny_clean_3dgs_tiny_s0", "garden-tiny_clean_3dgs_tiny_s1",
+                                             "street-tiny_clean_3dgs_tiny_s0", "street-tiny_clean_3dgs_tiny_s1"]
+    assert len(cs) == 2 * 2 * 2 * 2 + 4 and len({c.cell_id for c in cs}) == len(cs)
+    assert cs[:2] == ceilings[:2]  # each scene's reference first
+    assert not any(c.is_ceiling for c in build_cells(["garden"], ["H"], ["3dgs"], ["tiny"], [0]))  # only when asked
+    assert data_dir("r", ceilings[0]) == scene_dir("r", ceilings[0])  # the clean scene, not a weather setting
+    # the ceiling trains 3dgs with the grid's --set: one 3dgs lacks is refused, naming the way out
+    with pytest.raises(NimbusError, match="--no-ceiling"):
+        build_cells(["garden"], ["H"], ["nimbus"], ["tiny"], [0], overrides={"lambda_dcp": "0.1"}, ceiling=True)
+    assert build_cells(["garden"], ["H"], ["nimbus"], ["tiny"], [0], overrides={"lambda_dcp": "0.1"})
 
 
 def test_default_methods_skip_unregistered(monkeypatch):
@@ -295,8 +311,8 @@ class _Killed(BaseException):
     """A process killed between two steps (SIGKILL, a machine going away): nothing is saved on the way out."""
 
 
-def _kill_second_cell_at(monkeypatch, step: int):
-    """Make the second cell's training die before its step ``step``; returns the undo."""
+def _kill_second_cell_at(monkeypatch, step: int, cell_id: str | None = None):
+    """Make the second cell's (or ``cell_id``'s) training die before its step ``step``."""
     from nimbus.methods.gs3d import GaussianSplatting
     from nimbus.train.runner import Runner
 
@@ -308,7 +324,7 @@ def _kill_second_cell_at(monkeypatch, step: int):
         return original_train(self)
 
     def killed(self, it):
-        if running["out"].name.startswith(cells()[1].cell_id) and it == step:
+        if running["out"].name.startswith(cell_id or cells()[1].cell_id) and it == step:
             raise _Killed
         return original(self, it)
 
@@ -342,6 +358,24 @@ def test_a_killed_cell_continues_from_its_last_checkpoint(finished, tmp_path, mo
     assert rec["psnr"] == pytest.approx(uninterrupted["psnr"], abs=1e-4)
     assert rec["num_gaussians"] == uninterrupted["num_gaussians"]
     assert run_dir(root, grid_cells[1]).is_dir() and not partial.exists()
+
+
+def test_a_killed_clean_ceiling_cell_continues_from_its_last_checkpoint(finished, tmp_path, monkeypatch):
+    """The ceiling is resumed by the cells' one path: its partial run is recognised as its own (the clean scene)."""
+    root = copy_data(finished[0], tmp_path)
+    [ceiling] = [c for c in build_cells(["garden"], ["H"], ["3dgs"], ["tiny"], [0], "tiny", OVERRIDES, ceiling=True)
+                 if c.is_ceiling]
+    monkeypatch.setattr(cell, "make_config", _with_checkpoints_every(2))
+    _kill_second_cell_at(monkeypatch, 4, ceiling.cell_id)
+    with pytest.raises(_Killed):
+        run_grid([ceiling], root, InlineExecutor(), OPTIONS, progress=False, log=lambda s: None)
+    partial = root / "runs" / (ceiling.cell_id + cell.PARTIAL_SUFFIX)
+    assert (partial / "checkpoint.pt").is_file() and ResultsStore(root).records() == []
+    from nimbus.methods.gs3d import GaussianSplatting
+    monkeypatch.setattr(GaussianSplatting, "train_iteration", _ORIGINAL_STEP)
+    [rec] = run_grid([ceiling], root, InlineExecutor(), OPTIONS, progress=False, log=lambda s: None).ran
+    assert rec["status"] == "ok" and rec["resumed_from_iteration"] == 2 and rec["iterations"] == 5
+    assert rec["weather"] == CEILING and not partial.exists()
 
 
 def test_a_partial_run_of_other_settings_is_not_resumed(finished, tmp_path, monkeypatch):
@@ -403,17 +437,68 @@ def test_dask_executor_on_a_local_cluster(finished, tmp_path):
 
 
 # --- command line ------------------------------------------------------------------------
+GRID_ARGV = ["run", "--scenes", "garden", "--weathers", "H,R", "--methods", "3dgs", "--set", "iterations=5",
+             "--lpips", "none", "--quiet"]
+
+
 def test_cli_resumes_and_prints_the_table(finished, capsys):
     root, _ = finished
-    rc = run_cli(TOOL.run, ["run", "--scenes", "garden", "--weathers", "H,R", "--methods", "3dgs", "--set",
-                            "iterations=5", "--lpips", "none", "--root", str(root), "--quiet"])
+    before = (root / "results.jsonl").read_bytes()
+    rc = run_cli(TOOL.run, GRID_ARGV + ["--no-ceiling", "--root", str(root)])
     out, err = capsys.readouterr()
     assert rc == 0, err
-    assert "skipping 2 finished cell(s)" in err
+    assert "skipping 2 finished cell(s)" in err and "clean-ceiling" not in err
+    assert (root / "results.jsonl").read_bytes() == before  # --no-ceiling: nothing left to train
     lines = out.splitlines()
-    assert lines[0].split()[:3] == ["weather", "method", "cells"]
+    assert lines[0].split() == ["weather", "method", "cells", "PSNR", "SSIM", "LPIPS", "train", "s", "errors"]
     assert lines[1].split()[:3] == ["H", "3dgs", "1"] and lines[2].split()[:3] == ["R", "3dgs", "1"]
-    assert "SSIM protocol: 3dgs" in out
+    assert "SSIM protocol: 3dgs" in out and "ceiling" not in out and "ΔPSNR" not in out
+    assert not any(line.startswith(CEILING) for line in lines)
+
+
+def test_cli_trains_the_clean_ceiling_once_on_the_clean_views(finished, tmp_path, capsys):
+    """By default a grid of two weathers gains one clean-ceiling cell (3dgs on the clean scene), resumable alike."""
+    src = finished[0]
+    root = copy_data(src, tmp_path / "root")
+    shutil.copytree(src / "runs", root / "runs")
+    shutil.copyfile(src / "results.jsonl", root / "results.jsonl")  # the two weather cells, finished
+    assert run_cli(TOOL.run, GRID_ARGV + ["--root", str(root)]) == 0
+    out, err = capsys.readouterr()
+    assert "skipping 2 finished cell(s)" in err and "+ 1 clean-ceiling cell(s)" in err
+    recs = ResultsStore(root).records()
+    assert len(recs) == 3
+    ceiling = recs[-1]
+    assert ceiling["status"] == "ok", ceiling.get("error")
+    assert (ceiling["weather"], ceiling["method"], ceiling["preset"], ceiling["seed"], ceiling["size"]) == \
+        (CEILING, "3dgs", "tiny", 0, "tiny")
+    assert ceiling["cell_id"] == cells()[0].cell_id.replace("_H_", "_clean_")
+    assert ceiling["config"]["iterations"] == 5  # the grid's --set
+    # It trained on the clean scene: its input is the clean scene's manifest, its run read that folder.
+    clean = root / "scenes" / "garden-tiny"
+    assert ceiling["input_sha256"] == sha256_file(clean / "manifest.json")
+    config = json.loads((root / ceiling["run_dir"] / "config.json").read_text())
+    assert config["scene"] == str(clean.resolve())
+    # The same test views and ground truth as the weather cells (the synthesiser's clean/ is the scene's images).
+    weather = [r for r in recs if r["weather"] != CEILING]
+    assert all([v["name"] for v in r["per_view"]] == [v["name"] for v in ceiling["per_view"]] for r in weather)
+    for v in ceiling["per_view"]:
+        assert sha256_file(clean / "images" / v["name"]) == sha256_file(root / "data" / "garden-tiny" / "H" / "clean"
+                                                                         / v["name"])
+        render = root / ceiling["run_dir"] / "renders" / "test" / v["name"]
+        assert v["psnr"] == pytest.approx(psnr(read_image(render), read_image(clean / "images" / v["name"])))
+    # The summary: the ceiling first, then each line's gap to it (its PSNR minus the ceiling's).
+    lines = out.splitlines()
+    assert lines[0].split()[-1] == "ΔPSNR"
+    assert lines[1].split()[:3] == [CEILING, "3dgs", "1"] and float(lines[1].split()[3]) == \
+        pytest.approx(ceiling["psnr"], abs=0.005)
+    for line, rec in zip(lines[2:4], weather):
+        assert line.split()[0] == rec["weather"]
+        assert float(line.split()[-1]) == pytest.approx(rec["psnr"] - ceiling["psnr"], abs=0.005)
+    # Rerun: every cell finished, the ceiling too; nothing trains again.
+    before = (root / "results.jsonl").read_bytes()
+    assert run_cli(TOOL.run, GRID_ARGV + ["--root", str(root)]) == 0
+    assert "skipping 3 finished cell(s)" in capsys.readouterr().err
+    assert (root / "results.jsonl").read_bytes() == before
 
 
 @pytest.mark.parametrize("argv, message", [

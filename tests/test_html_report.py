@@ -20,7 +20,7 @@ from benchmark.cell import CellOptions
 from benchmark.cli import TOOL
 from benchmark.grid import InlineExecutor, build_cells, run_grid
 from benchmark.html_report import PAGE, ReportOptions, build_report, evenly_spaced, reproduce_commands
-from benchmark.store import load_results
+from benchmark.store import ResultsStore, load_results
 from nimbus.cli_util import run_cli
 from nimbus.errors import NimbusError
 
@@ -178,6 +178,51 @@ def test_reproduce_commands_run_exactly_the_cells():
                     for m in get["--methods"] for seed in get["--seeds"]}
     assert covered == {(r["scene"], r["weather"], r["method"], r["seed"]) for r in recs}
     assert "--scenes garden,street --weathers H --methods 3dgs,nimbus" in cmds[0]
+    # No ceiling cell in the store: every command says --no-ceiling (a plain run would add them).
+    assert all(c.endswith(" --no-ceiling") for c in cmds)
+    # The ceiling of garden and street, seed 0: a command without --no-ceiling runs only ceiling cells the store has
+    # (garden R nimbus, seed 1, must say --no-ceiling), and together they run all of them.
+    ceilings = {("garden", 0), ("street", 0)}
+    cmds = reproduce_commands(recs + [rec(sc, "clean", "3dgs", seed) for sc, seed in ceilings], "r")
+    assert len(cmds) == 3 and not any("--weathers clean" in c for c in cmds)  # no command of its own
+    ran = set()
+    for c in cmds:
+        words = c.split()
+        get = {words[i]: words[i + 1].split(",") for i in range(2, len(words) - 1, 2)}
+        if not c.endswith(" --no-ceiling"):
+            mine = {(sc, int(seed)) for sc in get["--scenes"] for seed in get["--seeds"]}
+            assert mine <= ceilings, c
+            ran |= mine
+    assert ran == ceilings
+    assert sum(c.endswith(" --no-ceiling") for c in cmds) == 1
+
+
+def test_the_report_shows_the_clean_ceiling(store, tmp_path):
+    """Its renders stand beside each setting's methods; the summary has it first and each row's gap to it."""
+    root = tmp_path / "root"
+    shutil.copytree(store, root)
+    [ceiling] = [c for c in build_cells(["garden"], ["H"], ["3dgs"], ["tiny"], [0], "tiny", {"iterations": "6"},
+                                        ceiling=True) if c.is_ceiling]
+    [rec] = run_grid([ceiling], root, InlineExecutor(), CellOptions(lpips_net=None), progress=False,
+                     log=lambda s: None).ran
+    assert rec["status"] == "ok", rec.get("error")
+    page = build_report(root, tmp_path / "report", ReportOptions(method_order=("nimbus", "3dgs")))
+    parser = Page()
+    parser.feed(page.read_text(encoding="utf-8"))
+    rows = [r for r in parser.summary if r]
+    assert [r[:2] for r in rows] == [["clean", "3DGS (clean views)"], ["H", "nimbus"], ["H", "3dgs"]]
+    assert rows[0][-1] == "–"  # no gap of its own
+    records = {r["method"]: r for r in ResultsStore(root).records() if r["weather"] == "H"}
+    for row in rows[1:]:
+        assert row[-1] == f"{records[row[1]]['psnr'] - rec['psnr']:.2f}"
+    html = page.read_text(encoding="utf-8")
+    assert "<th>3DGS (clean views)</th>" in html and "haze (H)" in html and "(clean)" not in html
+    for v in rec["per_view"]:
+        assert f"{v['psnr']:.2f} dB" in html
+    assert any(ceiling.cell_id in r for r in parser.refs) and all((page.parent / unquote(r)).is_file()
+                                                                   for r in parser.refs if "://" not in r
+                                                                   and not r.startswith(".."))
+    assert "--no-ceiling" not in html  # the store has the ceiling a plain command runs
 
 
 def test_evenly_spaced_keeps_both_ends():

@@ -182,6 +182,19 @@ def test_input_is_compared_by_content_within_one_level(tmp_path):
     assert len(problems) == 1 and "could not be read" in problems[0]
 
 
+def test_a_clean_ceiling_cell_is_checked_by_its_input_bytes(tmp_path):
+    """Its data folder is the clean scene, whose manifest lists no views: no content to read, and no crash."""
+    root, df = store(tmp_path, cell_record("clean"))
+    (root / "scenes" / "garden-tiny").mkdir(parents=True)
+    (root / "scenes" / "garden-tiny" / "manifest.json").write_text(json.dumps({"generator": "builtin", "seed": 0}))
+    df = attach_input_content(df, root)
+    assert df["input_content"].iloc[0] is None
+    reference = make_reference(df)
+    assert "input" not in reference["cells"][df["cell_id"].iloc[0]] and compare(df, reference) == []
+    _, other = store(tmp_path, cell_record("clean", input_sha256="b" * 64))
+    assert compare(other, reference) == [] and "bytes differ" in diff_table(other, reference)
+
+
 def test_improvements_and_config_changes_pass_with_a_note(tmp_path):
     _, base = store(tmp_path, record("a"))
     reference = make_reference(base)

@@ -10,6 +10,7 @@ import pytest
 
 from benchmark.cli import TOOL
 from benchmark.store import ResultsStore, load_results
+from benchmark.tables import ceiling
 from benchmark.tables.comparison import tables as comparison_tables
 from benchmark.tables.margins import tables as margins_tables
 from benchmark.tables.model import rank_marks
@@ -45,6 +46,25 @@ def records(ssim_protocol="3dgs", seeds=(0,)):
     out.append({"cell_id": "garden-tiny_S_3dgs_tiny_s0", "scene": "garden", "size": "tiny", "weather": "S",
                 "method": "3dgs", "preset": "tiny", "seed": 0, "status": "error", "error": "boom"})
     return out
+
+
+#: The clean ceiling (3dgs on the clean views) per scene: two seeds on garden, one on street.
+CEILING_VALUES = [("garden", 0, 30.0, 0.90, 0.05), ("garden", 1, 31.0, 0.92, 0.03), ("street", 0, 33.0, 0.95, 0.02)]
+
+
+def ceiling_records(values=CEILING_VALUES, preset="tiny"):
+    return [{"cell_id": f"{scene}-tiny_clean_3dgs_{preset}_s{seed}", "scene": scene, "size": "tiny",
+             "weather": "clean", "method": "3dgs", "preset": preset, "seed": seed, "status": "ok", "psnr": p,
+             "ssim": s, "lpips": lp, "ssim_protocol": "3dgs", "lpips_net": "vgg", "train_time_s": 1.0}
+            for scene, seed, p, s, lp in values]
+
+
+@pytest.fixture
+def ceiling_root(tmp_path):
+    store = ResultsStore(tmp_path / "ceiling")
+    for r in records() + ceiling_records():
+        store.append(r)
+    return tmp_path / "ceiling"
 
 
 @pytest.fixture
@@ -170,6 +190,77 @@ def test_csv(tables):
     assert all(r["lpips"] == "" or 0 <= float(r["lpips"]) < 1 for r in rows)
 
 
+def test_the_clean_ceiling_row_and_each_methods_gap_to_it(ceiling_root, tables):
+    with_ceiling = {t.layout: t for t in comparison_tables(load_results(ceiling_root), ["nimbus", "3dgs"])[0]}
+    assert list(with_ceiling) == ["H", "R"]  # the ceiling is no weather setting: no table of its own
+    h = with_ceiling["H"]
+    assert [b.name for b in h.blocks] == ["trained on H", ceiling.CEILING_BLOCK, ceiling.GAP_BLOCK]
+    assert h.lead == ("Method", "Rows") and h.groups == ["garden", "street", "Average"]
+    # The methods' rows and marks are those of the table without a ceiling.
+    plain = tables["H"]
+    assert [r.values for r in h.blocks[0].rows] == [r.values for r in plain.blocks[0].rows]
+    assert all(h.marks(g, k) == plain.marks(g, k) for g in h.groups for k in ("psnr", "ssim", "lpips"))
+    # The ceiling: per scene the mean over its seeds, Average over the table's scenes; never marked.
+    [c] = h.blocks[1].rows
+    assert c.label == ceiling.LABEL == "3DGS (clean views)"
+    assert c.values[("garden", "psnr")] == pytest.approx(30.5) and c.values[("garden", "lpips")] == pytest.approx(0.04)
+    assert c.values[("street", "ssim")] == pytest.approx(0.95) and c.group_fields["garden"]["seeds"] == 2
+    assert c.values[("Average", "psnr")] == pytest.approx((30.5 + 33.0) / 2)
+    # Each method's gap: its value minus the ceiling's, every metric, every group.
+    gaps = h.blocks[2].rows
+    assert [g.label for g in gaps] == h.blocks[0].labels
+    for method, gap in zip(h.blocks[0].rows, gaps):
+        for key, value in gap.values.items():
+            assert value == pytest.approx(method.values[key] - c.values[key]), (method.label, key)
+    assert h.row(OURS, 2).values[("garden", "psnr")] == pytest.approx(21.0 - 30.5)
+    assert h.row("3dgs", 2).values[("Average", "lpips")] == pytest.approx(0.35 - 0.03)
+    for block in (1, 2):
+        assert all(m is None for g in h.groups for k in ("psnr", "ssim", "lpips") for m in h.marks(g, k, block))
+    # A missing method value leaves its gap (and the gap's Average) empty, never a partial one.
+    r = with_ceiling["R"]
+    assert r.row(OURS, 2).values[("street", "psnr")] is None and r.row(OURS, 2).values[("Average", "psnr")] is None
+    assert r.row("3dgs", 2).values[("street", "psnr")] == pytest.approx(22.0 - 33.0)
+    # Markdown and LaTeX show the blocks by name; the note says what the rows are.
+    md = to_markdown(h)
+    assert "| 3DGS (clean views) | clean ceiling | 30.50 | 0.910 | 0.040 |" in md
+    assert "| 3dgs | gap to ceiling | -12.50 | -0.410 | 0.360 |" in md
+    assert "clean ceiling: 3dgs trained on the scene's clean training views" in " ".join(h.notes)
+    tex = to_latex(h)
+    assert r"\multirow{1}{*}{clean ceiling}" in tex
+    assert tex.count(r"\first{") == to_latex(plain).count(r"\first{") == 9  # only the methods' marks
+    # The CSV keeps the measured values: the ceiling's lines, not the derived gaps.
+    lines = list(csv.DictReader(io.StringIO(to_csv(list(with_ceiling.values())))))
+    assert len(lines) == len(list(csv.DictReader(io.StringIO(to_csv(list(tables.values())))))) + 2 * 3
+    clean = [x for x in lines if x["method"] == ceiling.LABEL]
+    assert {(x["weather"], x["scene"]) for x in clean} == {(w, g) for w in "HR" for g in ("garden", "street",
+                                                                                                  "Average")}
+    assert all(x["psnr_mark"] == "" for x in clean) and float(clean[0]["psnr"]) == pytest.approx(30.5)
+
+
+def test_no_ceiling_record_no_ceiling_row_and_no_word_of_it(tables, store_root):
+    for t in tables.values():
+        assert len(t.blocks) == 1 and t.lead == ("Method",)
+        assert "ceiling" not in to_markdown(t) and "clean views" not in to_markdown(t)
+    [m], _ = margins_tables(load_results(store_root), ["nimbus", "3dgs"])
+    assert ceiling.LABEL not in m.groups and "ceiling" not in to_markdown(m)
+    assert "ΔPSNR" not in summary_table(load_results(store_root)) and "ceiling" not in \
+        summary_table(load_results(store_root))
+
+
+def test_a_method_meets_the_ceiling_of_its_own_preset(tmp_path):
+    store = ResultsStore(tmp_path)
+    fast = [dict(r, cell_id=r["cell_id"] + "-fast", preset="fast") for r in records()[:2]]  # nimbus, 3dgs garden H
+    for r in records() + fast + ceiling_records([("garden", 0, 40.0, 0.99, 0.01)], preset="fast"):
+        store.append(r)
+    h = comparison_tables(load_results(tmp_path), ["nimbus", "3dgs"])[0][0]
+    [c] = h.blocks[1].rows
+    assert c.label == "3DGS (clean views) (fast)"
+    # Only the fast rows have a gap: the tiny ones have no tiny ceiling to meet.
+    assert h.blocks[2].labels == [f"{OURS} (fast)", "3dgs (fast)"]
+    assert h.row("3dgs (fast)", 2).values[("garden", "psnr")] == pytest.approx(18.0 - 40.0)
+    assert c.values.get(("street", "psnr")) is None and h.row("3dgs (fast)", 2).values[("Average", "psnr")] is None
+
+
 def test_seeds_are_averaged_and_mixed_protocols_refused(tmp_path):
     store = ResultsStore(tmp_path / "a")
     for r in records(seeds=(0, 1)):
@@ -247,6 +338,37 @@ def test_margins_seed_spread(tmp_path, store_root):
     assert (noisy["seeds"], float(noisy["d_psnr_seed_sd"])) == ("3", 0.5)
     assert (few["seeds"], few["d_psnr_seed_sd"]) == ("1", "")
     assert "±seed" in to_markdown(t) and "/ sqrt(n)" in t.notes[0]
+
+
+def test_margins_add_ours_gap_to_the_clean_ceiling(ceiling_root):
+    [t], _ = margins_tables(load_results(ceiling_root), ["nimbus", "3dgs"])
+    assert t.groups == ["3dgs", "restore+3dgs", ceiling.LABEL]  # the ceiling is no method: its 3dgs is not "3dgs"
+    h, r, everything = (t.row(x).values for x in ("H", "R", "All"))
+    assert h[("3dgs", "d_psnr")] == pytest.approx(3.0)  # unchanged by the ceiling's 3dgs records
+    # Haze: nimbus 21 / 23 against the ceiling's 30.5 / 33; LPIPS in margins' sign (the other minus Ours).
+    assert h[(ceiling.LABEL, "d_psnr")] == pytest.approx(((21 - 30.5) + (23 - 33)) / 2)
+    assert h[(ceiling.LABEL, "d_lpips")] == pytest.approx(((0.04 - 0.2) + (0.02 - 0.1)) / 2)
+    assert h[(ceiling.LABEL, "wins")] == "0/2" and r[(ceiling.LABEL, "wins")] == "0/1"
+    assert everything[(ceiling.LABEL, "d_psnr")] == pytest.approx(((21 - 30.5) + (23 - 33) + (25 - 30.5)) / 3)
+    assert "clean ceiling" in " ".join(t.notes)
+    # nimbus alone with a ceiling: the margins still have something to say.
+    alone = ResultsStore(ceiling_root / "alone")
+    for rec in [x for x in records() if x["method"] == "nimbus"] + ceiling_records():
+        alone.append(rec)
+    [t], skipped = margins_tables(load_results(ceiling_root / "alone"))
+    assert skipped == [] and t.groups == [ceiling.LABEL]
+
+
+def test_summary_gives_each_line_its_gap_to_the_ceiling(ceiling_root):
+    lines = summary_table(load_results(ceiling_root), ["nimbus", "3dgs"]).splitlines()
+    assert lines[0].split()[-1] == "ΔPSNR"
+    assert lines[1].split()[:4] == ["clean", "3dgs", "3", f"{(30 + 31 + 33) / 3:.2f}"] and len(lines[1].split()) == 8  # no gap of its own
+    rows = {tuple(x.split()[:2]): x.split() for x in lines[2:] if x[:1] in "HRS"}
+    # Per cell: its PSNR minus its scene's ceiling (garden 30.5, street 33), then the mean over the line's cells.
+    assert float(rows[("H", "nimbus")][-1]) == pytest.approx(((21 - 30.5) + (23 - 33)) / 2, abs=0.005)
+    assert float(rows[("R", "3dgs")][-1]) == pytest.approx(((24 - 30.5) + (22 - 33)) / 2, abs=0.005)
+    assert rows[("S", "3dgs")][-1] == "n/a"  # an error cell: no PSNR, no gap
+    assert "ΔPSNR = PSNR minus the ceiling's" in lines[-1]
 
 
 def test_summary_table_counts_errors(store_root):

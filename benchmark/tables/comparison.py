@@ -10,6 +10,10 @@ empty for a method missing a scene.  Best and second best are marked per column
 The "Ours" row is :data:`~benchmark.tables.results.COMPARISON_OURS` (``nimbus``, components chosen
 by ``auto``), labelled with its configuration; the ablation tables' "Ours" is ``nimbus-full``, and
 each table's note says both.
+
+When the store has clean-ceiling records (:mod:`benchmark.tables.ceiling`), each table has two more
+blocks under its methods: the ceiling (3DGS trained on the clean views) and each method's gap to it.
+The long-format CSV has the ceiling's lines (method ``3DGS (clean views)``), not the gaps.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Sequence
 
 from benchmark.data import PAPER_DIR, read_csv
+from benchmark.tables import ceiling
 from benchmark.tables.model import AVERAGE, Block, LongFormat, Row, Table
 from benchmark.tables.provenance import mixed_note
 from benchmark.tables.results import (COMPARISON_OURS, METRIC_COLUMNS, METRICS, average, finished, ordered, protocols,
@@ -51,10 +56,14 @@ def table_key(weather: str) -> str:
     return "weather_" + weather.replace(FAMILY_SEPARATOR, "_")
 
 
-def _table(weather: str, key: str, label: str, scenes: list[str], rows: list[Row], **kw) -> Table:
+def _table(weather: str, key: str, label: str, scenes: list[str], rows: list[Row], extra: Sequence[Block] = (),
+           **kw) -> Table:
+    """The table of one setting: the method rows, then the ``extra`` blocks (the clean ceiling's)."""
     tag = table_key(weather)[len("weather_"):].replace("+", "-").replace("_", "-")
-    return Table(key, weather, columns=METRIC_COLUMNS, groups=[*scenes, AVERAGE], blocks=[Block(rows)],
-                 label=f"tab:nimbus-bench-{label}{tag}", caption_lead=CAPTION_LEAD, wide=True, **kw)
+    blocks = [Block(rows, f"trained on {weather}" if extra else ""), *extra]
+    return Table(key, weather, columns=METRIC_COLUMNS, groups=[*scenes, AVERAGE], blocks=blocks,
+                 lead=("Method", "Rows") if extra else ("Method",), label=f"tab:nimbus-bench-{label}{tag}",
+                 caption_lead=CAPTION_LEAD, wide=True, **kw)
 
 
 def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]]:
@@ -64,11 +73,14 @@ def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]
     its table follows the default family's seven.  Methods in ``method_order`` are listed
     first, in that order; the others follow in store order.
     """
+    import pandas as pd
+
     from weather_synth.config import PROTOCOL_SUMMARIES
     from weather_synth.settings import family_order, parse_family_setting
 
     ok = finished(df)
-    ssim_protocol, lp = protocols(ok)
+    ssim_protocol, lp = protocols(ok)  # the ceiling's records too: its row is printed beside the others
+    ok, ceilings = ceiling.split(ok)
     out = []
     for weather in ordered(ok["weather"], family_order()):
         sub = ok[ok["weather"] == weather]
@@ -86,14 +98,19 @@ def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]
             for k in METRICS:
                 row.values[(AVERAGE, k)] = average([row.values.get((s, k)) for s in scenes])
             rows.append(row)
+        presets = dict(zip(sub["method_label"], sub["preset"]))
+        shown = ceilings[ceilings["scene_label"].isin(scenes) & ceilings["preset"].isin(set(presets.values()))]
+        extra = ceiling.blocks(rows, presets, shown, scenes)
         caption = weather_caption(weather)
         protocol = parse_family_setting(weather).protocol
         notes = [f"Synthesis protocol: {protocol} ({PROTOCOL_SUMMARIES[protocol]}); SSIM protocol: "
                  f"{ssim_protocol}; LPIPS: {lp}; mean over seeds, Average = mean over scenes; {COMPARISON_OURS.note()}"]
-        mixed = mixed_note(sub)
+        if extra:
+            notes.append(ceiling.note())
+        mixed = mixed_note(pd.concat([sub, shown]) if extra else sub)
         if mixed:
             notes.append(mixed)
-        out.append(_table(weather, table_key(weather), "", scenes, rows, title=caption, notes=notes,
+        out.append(_table(weather, table_key(weather), "", scenes, rows, extra, title=caption, notes=notes,
                           what=f"ours: method comparison, {caption}", csv=CSV,
                           fields={"weather": weather, "protocol": protocol, "ssim_protocol": ssim_protocol,
                                   "lpips_net": lp}))

@@ -13,6 +13,9 @@ the training seed, so a one-seed margin inside it is not a finding (the mean ove
 column is there only when some row has it.  The per-weather tables hold the values; this one answers
 "where does NimbusGS win, and where does a baseline" without subtracting by hand.  "Ours" is
 :data:`~benchmark.tables.results.COMPARISON_OURS` (the method a user runs, components by ``auto``).
+When the store has clean-ceiling records (:mod:`benchmark.tables.ceiling`), the ceiling (3DGS trained
+on the clean views, of Ours' preset) is one more group, last: Ours' gap to it in the same signs (below zero:
+what the weather costs Ours), and ``won`` the scenes where Ours scores above it.
 There is no paper counterpart (the paper's tables are other scenes).
 """
 
@@ -22,6 +25,8 @@ from typing import Sequence
 
 import numpy as np
 
+from benchmark.cell import CEILING_METHOD
+from benchmark.tables import ceiling
 from benchmark.tables.model import Block, Column, LongFormat, Row, Table, finite
 from benchmark.tables.provenance import mixed_note
 from benchmark.tables.results import COMPARISON_OURS, METRICS, finished, ordered, protocols, scene_means
@@ -76,23 +81,35 @@ def _margins(pairs: list[tuple[dict, dict]]) -> tuple[dict[str, float | str | No
 
 def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]]:
     """The margins table of the store's finished cells, or none (and why) without Ours or another method."""
+    import pandas as pd
+
     from weather_synth.settings import family_order
 
     ok = finished(df)
     ssim_protocol, lp = protocols(ok)
+    ok, ceilings = ceiling.split(ok)
     ours_labels = ordered(ok.loc[ok["method"] == COMPARISON_OURS.method, "method_label"])
     if not ours_labels:
         return [], [f"margins (no {COMPARISON_OURS.method} cell to compare)"]
     ours = ours_labels[0]  # with several presets, the first (the others are compared as methods of their own)
     others = [m for m in ordered(ok["method_label"], method_order) if m != ours]
-    if not others:
-        return [], [f"margins (no method besides {ours} to compare with)"]
     means: dict[tuple[str, str, str], dict] = {}
     for weather, sub in ok.groupby("weather", sort=False):
         seeds = _seed_psnr(sub)
         for (m, s), (vals, _) in scene_means(sub, "method_label").items():
             means[(weather, m, s)] = dict(vals, seeds=seeds[(m, s)])
     weathers = ordered(ok["weather"], family_order())
+    preset = ok.loc[ok["method_label"] == ours, "preset"].iloc[0]
+    reference = ceilings[ceilings["preset"] == preset]
+    if len(reference):
+        clean = ceiling.label(reference["method_label"].iloc[0])
+        seeds = _seed_psnr(reference)
+        for (_, s), (vals, _) in ceiling.preset_means(reference).items():
+            means.update({(w, clean, s): dict(vals, seeds=seeds[(reference["method_label"].iloc[0], s)])
+                          for w in weathers})
+        others.append(clean)
+    if not others:
+        return [], [f"margins (no method besides {ours} to compare with)"]
 
     def pairs(weather_set: list[str], other: str) -> list[tuple[dict, dict]]:
         return [(means[(w, ours, s)], means[(w, other, s)]) for (w, m, s) in means
@@ -117,7 +134,11 @@ def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]
                 "computed seed by seed (a one-seed margin moves by about this much; the mean over n seeds by this / "
                 "sqrt(n)). " if spread else "")
              + f"SSIM protocol: {ssim_protocol}; LPIPS: {lp}; {COMPARISON_OURS.note()}"]
-    mixed = mixed_note(ok)
+    if len(reference):
+        notes.append(f"{clean} = the clean ceiling: {CEILING_METHOD} trained on the scene's clean training views "
+                     "(same views, split, preset and seeds); its group is Ours' gap to it, in the same signs (below "
+                     "zero: what the weather costs Ours)")
+    mixed = mixed_note(pd.concat([ok, reference]) if len(reference) else ok)
     if mixed:
         notes.append(mixed)
     return [Table("margins", "margins", title, columns=columns, groups=others, blocks=[Block(rows)],

@@ -15,7 +15,8 @@ Shape::
 
 Marks: within a block, for each (group, ranked column), the best value is marked when at
 least two rows have a value and the second best when at least three do; values are compared
-as printed (:func:`rank_marks`), so equal printed values share a mark.
+as printed (:func:`rank_marks`), so equal printed values share a mark.  A block that is not
+:attr:`Block.ranked` (a reference row, differences) has no marks.
 """
 
 from __future__ import annotations
@@ -138,13 +139,16 @@ class Block:
         Long-format CSV fields of the block's lines (``block``, ``weather``).
     csv_groups : tuple of str or None
         Groups the long-format CSV lists for this block (an ``Average`` column's inputs, say);
-        None: the table's groups.
+        None: the table's groups; ``()``: none (rows derived from other blocks' values).
+    ranked : bool
+        Whether its rows get marks (False: a reference row or differences, never best or second).
     """
 
     rows: list[Row]
     name: str = ""
     fields: dict[str, Any] = field(default_factory=dict)
     csv_groups: tuple[str, ...] | None = None
+    ranked: bool = True
 
     @property
     def labels(self) -> list[str]:
@@ -255,6 +259,6 @@ class Table:
         """Each row's mark (1 best, 2 second, None) in ``group``'s ``column`` within ``block``."""
         col = next(c for c in self.columns if c.key == column)
         values = [r.values.get((group, column)) for r in self.blocks[block].rows]
-        if not col.ranked:
+        if not col.ranked or not self.blocks[block].ranked:
             return [None] * len(values)
         return rank_marks(values, col.higher_is_better, col.decimals)

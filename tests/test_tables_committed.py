@@ -1,0 +1,52 @@
+"""The committed table folders that hold their records regenerate from them byte for byte.
+
+``tables/small_fast_6methods`` (issue 17's grid) and ``tables/cuda_check_small_fast`` (its CUDA check) keep
+their ``results.jsonl``; the commands their READMEs give must write exactly the committed files, so a change
+to a table layout that moves a committed figure or sentence shows here, not in a reader's diff.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from benchmark.cli import TOOL
+from nimbus.cli_util import run_cli
+
+TABLES = Path(__file__).resolve().parents[1] / "tables"
+METHODS = "nimbus,nimbus-paper,3dgs,restore-3dgs,robust-3dgs,medium-3dgs"  # the READMEs' --methods
+
+
+def same_files(out: Path, committed: Path) -> None:
+    written = sorted(p.name for p in out.iterdir())
+    assert written == sorted(p.name for p in committed.iterdir() if p.name not in ("README.md", "results.jsonl"))
+    for name in written:
+        assert (out / name).read_bytes() == (committed / name).read_bytes(), name
+
+
+@pytest.fixture
+def issue17(tmp_path):
+    root = tmp_path / "bench17"
+    root.mkdir()
+    shutil.copyfile(TABLES / "small_fast_6methods" / "results.jsonl", root / "results.jsonl")
+    return root
+
+
+def test_issue17_tables_regenerate(issue17, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert run_cli(TOOL.run, ["tables", "--root", str(issue17), "--out", str(out), "--methods", METHODS]) == 0
+    capsys.readouterr()
+    same_files(out, TABLES / "small_fast_6methods")
+
+
+def test_cuda_check_regenerates(issue17, tmp_path, capsys):
+    cuda = tmp_path / "bench17_cuda"
+    cuda.mkdir()
+    shutil.copyfile(TABLES / "cuda_check_small_fast" / "results.jsonl", cuda / "results.jsonl")
+    out = tmp_path / "out"
+    assert run_cli(TOOL.run, ["compare", "--root", str(issue17), "--against", str(cuda), "--names", "cpu,cuda",
+                              "--methods", METHODS, "--out", str(out)]) == 0
+    capsys.readouterr()
+    same_files(out, TABLES / "cuda_check_small_fast")
