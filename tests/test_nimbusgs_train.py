@@ -405,3 +405,35 @@ def test_initial_colours_are_dehazed_through_the_initial_medium(hazy, tmp_path):
     mean_rgb = {k: float(sh_to_rgb(t.params.tensors["sh_dc"].detach()).mean()) for k, t in (("plain", plain),
                                                                                           ("dehazed", dehazed))}
     assert mean_rgb["dehazed"] < mean_rgb["plain"] - 0.02
+
+
+def test_dehazed_view_prior_is_each_views_dark_channel_dehaze_and_only_with_csm(hazy, tmp_path):
+    from nimbus.restore import pixel_sizes
+    from nimbus.restore.classical import dehaze
+
+    m = _nimbus(hazy, _cfg(), tmp_path / "on").method
+    assert len(m.prior_clean) == len(m.train_views)
+    for img, prior in zip(m.train_images, m.prior_clean):
+        torch.testing.assert_close(prior, dehaze(img.float(), pixel_sizes(*img.shape[:2])[0])[0], rtol=0, atol=0)
+    # The dehaze removes airlight: the prior is darker than the hazy view it was made from.
+    assert float(torch.stack(m.prior_clean).mean()) < float(torch.stack(m.train_images).mean()) - 0.05
+    assert _nimbus(hazy, _cfg(components="plm,ggs"), tmp_path / "no-csm").method.prior_clean is None
+    assert _nimbus(hazy, _cfg(lambda_dehaze=0.0), tmp_path / "off").method.prior_clean is None
+
+
+def test_dehazed_view_prior_adds_the_photometric_loss_at_its_stage_weight(hazy, tmp_path):
+    from nimbus.nimbusgs.losses import stage_loss
+
+    m = _nimbus(hazy, _cfg(lambda_dehaze=0.7, prior_stage2=0.5, components="csm"), tmp_path / "run").method
+    vi = 1
+    gt = m.train_images[vi]
+    with torch.no_grad():
+        render = m.render(m.train_views[vi].camera)
+        term = float(stage_loss(render["rgb"], m.prior_clean[vi], m.cfg.lambda_dssim, None))
+        assert term > 0
+        for step, weight in ((1, 0.7), (m.cfg.m_init + 1, 0.35)):
+            with_prior = float(m.loss(step, vi, render, gt)[0])
+            prior, m.prior_clean = m.prior_clean, None
+            without = float(m.loss(step, vi, render, gt)[0])
+            m.prior_clean = prior
+            assert with_prior - without == pytest.approx(weight * term, rel=1e-5)

@@ -56,7 +56,8 @@ from nimbus.nimbusgs.degradation import (DEHAZE_MIN_TRANSMISSION, INIT_TRANSMISS
 from nimbus.nimbusgs.ggs import GGSFactors, ggs_weights, scale_gradients
 from nimbus.nimbusgs.losses import dcp_loss, stage_loss
 from nimbus.nimbusgs.particulate import ViewGeometry, is_refresh_step
-from nimbus.restore.classical import RestoreConfig, classical_restore
+from nimbus.restore import pixel_sizes
+from nimbus.restore.classical import RestoreConfig, classical_restore, dehaze, remove_particles
 from nimbus.nimbusgs.scattering import Box, ExtinctionGrid, ViewRays, camera_rays
 from nimbus.render.gaussians import Gaussians
 from nimbus.render.rasterize import rasterize
@@ -101,6 +102,10 @@ class NimbusGS(GaussianSplatting):
         self.use_ggs: bool | None = None if self.auto else "ggs" in forced
         self.particles = None
         self.time_saved: dict[str, float] = {}
+        #: Per training view, its single-image dehaze (``lambda_dehaze``), or None.
+        self.prior_clean: list[Tensor] | None = None
+        if self.use_csm and c.lambda_dehaze > 0:
+            self.prior_clean = self._dehazed_views()
         if self.use_csm:
             self.medium = self._build_medium(self.params["means"].detach())
             if c.init_dehaze:
@@ -159,8 +164,10 @@ class NimbusGS(GaussianSplatting):
         c = self.cfg
         t0 = c.init_transmission or min(max(self.haze.transmission_estimate, INIT_TRANSMISSION_RANGE[0]),
                                         INIT_TRANSMISSION_RANGE[1])
+        a0 = (self.descriptors[:, :3].mean(0) if c.airlight_init == 0
+              else torch.full((3,), c.airlight_init, device=self.descriptors.device))
         return Medium(c, box or self._content_box(means), t0, self._mean_ray_length(means),
-                      self.descriptors[:, :3].mean(0), self.seed, self.device, views=len(self.train_views))
+                      a0, self.seed, self.device, views=len(self.train_views))
 
     @torch.no_grad()
     def _dehaze_initial_colours(self) -> None:
@@ -174,6 +181,20 @@ class NimbusGS(GaussianSplatting):
         dc[:, 0] = rgb_to_sh(clean)
         self._pending.append(("init_dehaze", {"mean_transmission": round(float(T0.mean()), 4),
                                               "airlight": [round(float(x), 4) for x in a0]}))
+
+    @torch.no_grad()
+    def _dehazed_views(self) -> list[Tensor]:
+        """Each training view's single-image dark-channel dehaze, the prior of ``lambda_dehaze``."""
+        t0 = time.perf_counter()
+        out = []
+        for img in self.train_images:
+            dcp, particles = pixel_sizes(*img.shape[:2])
+            x = img.float().cpu()
+            if self.cfg.prior_particles:
+                x = torch.from_numpy(remove_particles(np.ascontiguousarray(x.numpy()), particles))
+            out.append(dehaze(x, dcp)[0].to(img))
+        self.timing["prior_s"] += time.perf_counter() - t0
+        return out
 
     def _rays_for(self, vi: int) -> ViewRays:
         if vi not in self._rays:
@@ -242,6 +263,11 @@ class NimbusGS(GaussianSplatting):
                                                       mask)
             if c.lambda_tv > 0 and self.medium.field is not None:
                 loss = loss + c.lambda_tv * self.medium.field.tv()
+            if self.prior_clean is not None:
+                weight = c.lambda_dehaze * (1.0 if self.stage == 1 else c.prior_stage2)
+                if weight > 0:
+                    loss = loss + weight * stage_loss(parts["clean"], self.prior_clean[view_index], c.lambda_dssim,
+                                                      self.train_masks[view_index])
         return loss, pred.detach()
 
     def reweight_gradients(self, step: int, view_index: int, render: dict, pred: Tensor, gt: Tensor,

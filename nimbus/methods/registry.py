@@ -95,7 +95,7 @@ PAPER: dict[str, Any] = {
     "residual_outlier_sigmas": 0.0, "residual_tophat": 0.0, "consistency_neighbours": 0,
     # CSM: L_DCP on every pixel; colours start at the SfM colours; the box is the 2x AABB of every centre.
     "dcp_surface_only": False, "init_dehaze": False, "box_scale": 2.0, "box_content_factor": 0.0,
-    "view_density": False,
+    "view_density": False, "lambda_dehaze": 0.0,
     # GGS: the bare w_i / mean(w), no [0.5, 3] clip.
     "ggs_clip": (0.0, math.inf),
     # The airlight MLP sees the input pixel and T; 448 wide gives 448^2 + 9 * 448 + 3 = 204,739 parameters,

@@ -173,6 +173,10 @@ class NimbusConfig(TrainConfig):
         carry the edges, stay per pixel.
     airlight_sh_degree : int
         SH degree of the ``sh`` airlight (0..3).
+    airlight_init : float
+        Initial grey level of the ``constant`` and ``sh`` airlights (0: the training views'
+        dark-channel estimate, mean over views).  The released code starts its airlight at
+        ``(tanh(b) + 1) / 2`` with ``b ~ N(0, 1e-3)``: grey 0.5.
     lr_airlight : float
         Adam learning rate of the airlight module (paper: 5e-4).
 
@@ -199,6 +203,25 @@ class NimbusConfig(TrainConfig):
         0.1 for the same reason).
     lambda_tv : float
         Weight of L_TV = mean |grad beta| over the grid (released code: 1; 0 = "w/o TV").
+    lambda_dehaze : float
+        Weight of the dehazed-view prior (ours; the paper has none; 0 turns it off): the trainer's
+        photometric loss ``(1 - lambda_r) L1 + lambda_r (1 - SSIM)`` between the clean render
+        I_hat of a training view and that view's single-image dark-channel dehaze (He et al., the
+        restorer ``restore-3dgs`` uses, :func:`nimbus.restore.classical.dehaze` at
+        :func:`nimbus.restore.pixel_sizes`), computed once.  Only with CSM (a haze-free scene
+        builds nothing).  Why: the degraded-image loss cannot tell a clean render that keeps a
+        veil (T too high, P too low) from the clean one, and L_DCP alone moves it slowly; a per-view
+        estimate that is unbiased on average pins the level, while the 3D model and the medium
+        keep what the views agree on.  Chosen on the validation scenes (scene seed 1, tiny, the
+        12 hazy ``onerestore`` cells): mean PSNR 14.2 dB without, 17.7 with ``1`` (restore-3dgs:
+        16.3); an L1-only prior gave 17.3, a prior in stage 1 only 14.4 (the veil comes back in
+        stage 2), a prior on T from the same dehaze 14.4.  See ``tables/`` README of the grid.
+    prior_stage2 : float
+        The prior's weight in stage 2, as a fraction of ``lambda_dehaze`` (1: the whole run; 0:
+        stage 1 only).
+    prior_particles : bool
+        Remove bright particles (:func:`nimbus.restore.classical.remove_particles`) from a view
+        before dehazing it for the prior (a rain streak divided by a low transmission is amplified).
 
     Particulate layer (PLM)
     -----------------------
@@ -310,6 +333,7 @@ class NimbusConfig(TrainConfig):
     airlight_hidden: int = 64
     airlight_stride: int = 1
     airlight_sh_degree: int = 1
+    airlight_init: float = 0.0
     lr_airlight: float = 5e-4
     # losses
     lambda_dcp: float = 1.0
@@ -319,6 +343,9 @@ class NimbusConfig(TrainConfig):
     dcp_stage2: bool = False
     dcp_surface_only: bool = True
     lambda_tv: float = 1.0
+    lambda_dehaze: float = 1.0
+    prior_stage2: float = 1.0
+    prior_particles: bool = False
     # PLM
     residual_source: str = "render"
     residual_outlier_sigmas: float = 3.0
@@ -366,10 +393,11 @@ class NimbusConfig(TrainConfig):
         "lr_extinction": at_least(0), "surface_alpha_min": between(0, 1, lo_open=True),
         "airlight": one_of(*AIRLIGHTS), "airlight_input": one_of(*AIRLIGHT_INPUTS), "airlight_hidden": at_least(1),
         "airlight_stride": between(1, 64),
-        "airlight_sh_degree": between(0, 3),
+        "airlight_sh_degree": between(0, 3), "airlight_init": between(0, 1, hi_open=True, note="0: estimate"),
         "lr_airlight": at_least(0),
         "lambda_dcp": at_least(0), "dcp_form": one_of(*DCP_FORMS), "dcp_patch": at_least(1),
         "dcp_temperature": at_least(0, note="0: hard minimum"), "lambda_tv": at_least(0),
+        "lambda_dehaze": at_least(0, note="0: no dehazed-view prior"), "prior_stage2": at_least(0),
         "residual_source": one_of(*RESIDUAL_SOURCES), "residual_outlier_sigmas": at_least(0, note="0: off"),
         "residual_outlier_scope": one_of(*OUTLIER_SCOPES),
         "residual_tophat": between(0, 0.5, note="a fraction of the image width; 0: off"),
