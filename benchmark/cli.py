@@ -1,9 +1,10 @@
-"""``nimbus-bench``: score renders against ground truth, and (later) run, tabulate and stress the benchmark.
+"""``nimbus-bench``: run the benchmark grid, score renders, write tables and reports, and stress the tools.
 
 Each subcommand lives in its own module of :mod:`benchmark.commands` (see :class:`nimbus.cli_util.SubcommandTool`);
 adding a subcommand is one module there and its name in :data:`COMMANDS`.
 """
 
+import nimbus.cli  # noqa: F401  (first: the OpenMP wait policy, before anything loads torch)
 from nimbus.cli_util import SubcommandTool
 
 # Subcommand name -> module defining it (order is the order in --help).

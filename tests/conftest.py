@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
-import numpy as np
-import pytest
+import os
 
-from nimbus.data.camera import Camera
-from nimbus.data.scene import Scene, View
+# As the command-line tools do (nimbus.cli): passive OpenMP waits, before torch loads in this process.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from nimbus.data.camera import Camera  # noqa: E402
+from nimbus.data.scene import Scene, View  # noqa: E402
 
 
 def make_tiny_scene(n_views: int = 5, width: int = 32, height: int = 24, n_points: int = 40, seed: int = 0,

@@ -8,6 +8,7 @@ import machinery, not from a reader.
 from __future__ import annotations
 
 import ast
+import os
 from pathlib import Path
 
 import pytest
@@ -115,3 +116,20 @@ def test_the_checks_can_fail(tmp_path):
     assert cycles(graph) == [["nimbus.a", "nimbus.b", "nimbus.c"]]  # through a lazy, relative import
     assert graph["nimbus.d"] == {"nimbus.a", "weather_synth.x"}  # a back-edge the direction test refuses
     assert cycles(graph, {("nimbus.c", "nimbus.a")}) == []
+
+
+def test_importing_the_library_changes_no_environment_variable_and_the_tools_set_the_openmp_policy():
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    # OpenCV's own loader adds to LD_LIBRARY_PATH when cv2 is imported: not ours, so it is loaded before the snapshot.
+    check = ("import os, sys, cv2; before = dict(os.environ); import {mods}; "
+             "sys.stdout.write(repr(sorted(set(os.environ.items()) ^ set(before.items()))))")
+    lib = subprocess.run([sys.executable, "-c", check.format(mods="nimbus, nimbus.data, weather_synth, benchmark")],
+                         env=env, capture_output=True, text=True, check=True)
+    assert lib.stdout == "[]"
+    for cli in ("nimbus.cli.train", "nimbus.cli.view", "weather_synth.cli", "benchmark.cli"):
+        out = subprocess.run([sys.executable, "-c", check.format(mods=cli)], env=env, capture_output=True,
+                             text=True, check=True)
+        assert out.stdout == "[('OMP_WAIT_POLICY', 'PASSIVE')]", (cli, out.stdout)

@@ -1,5 +1,6 @@
 """``nimbus-synth``: make scenes (built-in or from photos) and degrade them with weather."""
 
+import nimbus.cli  # noqa: F401  (first: the OpenMP wait policy, before anything loads torch)
 from nimbus.cli_util import SubcommandTool
 from weather_synth.config import PROTOCOL_SUMMARIES, PROTOCOLS
 
