@@ -163,7 +163,8 @@ class NimbusConfig(TrainConfig):
         the input's colour at the pixel and T.  See :mod:`nimbus.nimbusgs.airlight`.
     airlight_hidden : int
         Width of the airlight MLP's two hidden layers (the paper's MLP has 0.2M parameters:
-        448 with ``airlight_input=pixel``, as ``nimbus-paper``).
+        448 with ``airlight_input=pixel``; ``nimbus-paper`` trains the released code's global
+        colour instead, see :data:`nimbus.methods.registry.PAPER`).
     airlight_stride : int
         The ``network`` airlight is evaluated once per ``airlight_stride`` x ``airlight_stride``
         block of pixels (its inputs averaged over the block, the ray direction renormalised)
