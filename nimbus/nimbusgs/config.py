@@ -216,7 +216,7 @@ class NimbusConfig(TrainConfig):
         keep what the views agree on.  Chosen on the validation scenes (scene seed 1, tiny, the
         12 hazy ``onerestore`` cells): mean PSNR 14.2 dB without, 17.7 with ``1`` (restore-3dgs:
         16.3); an L1-only prior gave 17.3, a prior in stage 1 only 14.4 (the veil comes back in
-        stage 2), a prior on T from the same dehaze 14.4.  See ``tables/`` README of the grid.
+        stage 2), a prior on T from the same dehaze 14.4 (docs/methods/paper.md).
     prior_stage2 : float
         The prior's weight in stage 2, as a fraction of ``lambda_dehaze`` (1: the whole run; 0:
         stage 1 only).
