@@ -22,6 +22,7 @@ import numpy as np
 from nimbus.data.images import IMAGE_EXTENSIONS, image_size, write_depth, write_image, write_mask
 from nimbus.data.scene import Scene, View, scene_file, write_split_lists
 from nimbus.errors import NimbusError
+from nimbus.utils.progress import slow_progress
 
 log = logging.getLogger(__name__)
 
@@ -104,7 +105,7 @@ def check_points_finite(points: np.ndarray, source: str | os.PathLike) -> None:
 def check_image_sizes(views: list[View], hint: str) -> None:
     """Check every view's image file against its camera size; NimbusError naming the first mismatches."""
     bad = []
-    for v in views:
+    for v in slow_progress(views, "checking image sizes", len(views), "image"):
         w, h = image_size(v.image_path)
         if (w, h) != (v.camera.width, v.camera.height):
             bad.append(f"{v.image_path} is {w}x{h}, camera {v.camera.width}x{v.camera.height}")
