@@ -63,6 +63,7 @@ from nimbus.render.projection import covariance_3d
 from nimbus.render.sh import sh_to_rgb
 from nimbus.train.checkpoint import CHECKPOINT
 from nimbus.train.runner import Runner
+from nimbus.utils.memory import SizeCost, check_sizes
 
 #: What the ``layer`` dropdown offers for a NimbusGS run (other runs: ``clean`` only).
 LAYERS = ("clean", "degraded", "T", "P", "R")
@@ -555,16 +556,33 @@ class Viewer:
         self.server.stop()
 
 
+def check_render_height(runner: Runner, config: ViewerConfig) -> None:
+    """Refuse a ``render_height`` whose frames cannot fit in memory (:func:`~nimbus.utils.memory.check_sizes`),
+    at the first frame's aspect (training view 0's): the method's render of every layer, and the panel's image."""
+    first = runner.scene.train_views[0].camera
+    aspect = first.width / first.height
+
+    def width(h: int) -> int:
+        return max(1, round(h * aspect))
+
+    def need(h: int) -> float:  # the render, and the panel's uint8 RGB image (its first, blank one is square)
+        return runner.method.frame_bytes(h * width(h)) + 3.0 * h * max(h, width(h))
+
+    check_sizes([SizeCost("--render-height", config.render_height, need, lambda h: f"one frame at {width(h)}x{h}")],
+                torch.device(config.device))
+
+
 def start_viewer(run_dir: str | Path, config: ViewerConfig = ViewerConfig()) -> Viewer:
     """Open the run in ``run_dir`` and serve it; the running :class:`Viewer` (call :meth:`Viewer.stop`).
 
-    Raises NimbusError for a refused address (:func:`check_address`), a busy port, or a folder that is
-    not a readable run.
+    Raises NimbusError for a refused address (:func:`check_address`), a busy port, a folder that is
+    not a readable run, or a render height whose frames cannot fit in memory (:func:`check_render_height`).
     """
     check_address(config.host, config.port, config.allow_remote)
     if config.render_height < 8:
         raise NimbusError(f"--render-height must be at least 8 pixels, got {config.render_height}")
     runner = open_run(run_dir, config.device)
+    check_render_height(runner, config)
     import viser
 
     guard = AccessGuard(config.host, is_loopback(config.host))

@@ -299,6 +299,18 @@ def test_cli_refuses_a_non_local_host_in_one_line(nimbus_run, capsys):
     assert len(err) == 1 and err[0].startswith("error: ") and "--allow-remote" in err[0]
 
 
+def test_a_render_height_that_cannot_fit_is_refused_with_its_estimate(nimbus_run, capsys):
+    """A frame's height is checked against memory at the first frame's aspect (4:3) before the server starts."""
+    with pytest.raises(NimbusError, match=r"^--render-height=1000000 needs about [\d,]+ GiB for one frame at "
+                                          r"1333333x1000000; the limit is .* GiB .*; use at most \d+$"):
+        start_viewer(nimbus_run, ViewerConfig(port=0, render_height=1_000_000))
+    with pytest.raises(SystemExit) as info:
+        view_main([str(nimbus_run), "--port", "0", "--render-height", "100000"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: --render-height=100000 needs about "), err
+
+
 def test_busy_port_is_an_error_not_another_port(nimbus_run):
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
