@@ -18,18 +18,32 @@ that view's, resized to the frame), and an ``extinction`` slider scales the exti
 at render time (0 clears the haze, 2 doubles it; the loaded model is left as it was).
 
 The server binds 127.0.0.1 by default; another address is refused unless ``allow_remote`` is given,
-since anyone who reaches the port sees the run.
+since anyone who reaches the port sees the run.  Reaching the port is not enough either
+(:class:`AccessGuard`): every launch draws a secret token, printed in the URL (``?token=...``), and
+an HTTP request or websocket without it is refused (403).  The page hands the token on to its
+websocket in a cookie (``HttpOnly``, ``SameSite=Strict``) that the server sets when it serves the
+page.  On a loopback address the ``Host`` of every request must be one of this machine's own names
+with the viewer's port (127.0.0.1, localhost, [::1]), so a web page whose name was rebound to
+127.0.0.1 (DNS rebinding) is refused, and a websocket's ``Origin`` must be such an address too, so
+a page of another site cannot open one from the user's browser.  Served to other machines
+(``allow_remote``), the ``Host`` is whatever name they reach it by and the ``Origin`` must match it.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hmac
+import http
+import inspect
+import io
 import ipaddress
 import math
+import secrets
 import socket
 import threading
 import time
+import urllib.parse
 from pathlib import Path
 from typing import Iterator
 
@@ -49,6 +63,7 @@ from nimbus.render.projection import covariance_3d
 from nimbus.render.sh import sh_to_rgb
 from nimbus.train.checkpoint import CHECKPOINT
 from nimbus.train.runner import Runner
+from nimbus.utils.memory import SizeCost, check_sizes
 
 #: What the ``layer`` dropdown offers for a NimbusGS run (other runs: ``clean`` only).
 LAYERS = ("clean", "degraded", "T", "P", "R")
@@ -56,6 +71,12 @@ LAYERS = ("clean", "degraded", "T", "P", "R")
 MIN_EXTINCTION_FACTOR = 1e-6
 #: viser's own default port.
 DEFAULT_PORT = 8080
+#: The query parameter of the printed URL that carries the launch's secret token.
+TOKEN_PARAM = "token"
+#: Bytes of randomness in a token (:func:`secrets.token_urlsafe`; 43 characters).
+TOKEN_BYTES = 32
+#: The names of this machine a browser may use for a viewer on a loopback address.
+LOOPBACK_NAMES = ("127.0.0.1", "localhost", "[::1]")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -122,6 +143,114 @@ def check_address(host: str, port: int, allow_remote: bool) -> None:
 
 def url_of(host: str, port: int) -> str:
     return f"http://[{host}]:{port}" if ":" in host else f"http://{host}:{port}"
+
+
+# --- who may connect ------------------------------------------------------------------------------
+class AccessGuard:
+    """Decides which requests reach viser: those that carry the launch's token, by the viewer's own address.
+
+    A request passes when all of these hold (module docstring):
+
+    * it carries :attr:`token`, as ``?token=`` in its path or in the cookie :meth:`cookie_name`;
+    * on a loopback bind, its ``Host`` is one of :data:`LOOPBACK_NAMES` (or the bound name) with the port;
+    * its ``Origin``, when it has one (a browser's websocket always has), is ``http://`` and an accepted
+      ``Host`` (on a remote bind: the request's own ``Host``).
+
+    Parameters
+    ----------
+    host : str
+        The address the server binds.
+    loopback : bool
+        Whether ``host`` is a loopback address (names of this machine only) or served to others.
+    token : str, optional
+        Default: a new :func:`secrets.token_urlsafe` of :data:`TOKEN_BYTES`.
+    """
+
+    def __init__(self, host: str, loopback: bool, token: str | None = None) -> None:
+        self.host = host
+        self.loopback = loopback
+        self.token = token or secrets.token_urlsafe(TOKEN_BYTES)
+
+    @staticmethod
+    def cookie_name(port: int) -> str:
+        """One cookie per port: cookies are scoped by host name, not port, and two viewers may run."""
+        return f"nimbus_view_{port}"
+
+    def accepted_hosts(self, port: int) -> set[str] | None:
+        """The ``Host`` values accepted (lower case), None for any (a bind other machines reach)."""
+        if not self.loopback:
+            return None
+        names = {*LOOPBACK_NAMES, self.host.lower() if ":" not in self.host else f"[{self.host.lower()}]"}
+        return {f"{n}:{port}" for n in names} | (names if port == 80 else set())
+
+    def refusal(self, request, port: int) -> str | None:
+        """Why ``request`` (a websockets ``Request`` to ``port``) is refused, or None when it may pass."""
+        headers = request.headers
+        host = headers.get("Host", "").strip().lower()
+        hosts = self.accepted_hosts(port)
+        if not host or (hosts is not None and host not in hosts):
+            return f"this viewer answers to its own address only (http://127.0.0.1:{port}), not {host or 'none'}"
+        origin = headers.get("Origin")
+        if origin is not None and origin.strip().lower() not in {f"http://{h}" for h in (hosts or {host})}:
+            return "pages of other sites may not connect to this viewer"
+        if not self._has_token(request, port):
+            return "open the address nimbus-view printed, with its ?token=..."
+        return None
+
+    def _has_token(self, request, port: int) -> bool:
+        query = urllib.parse.parse_qs(urllib.parse.urlsplit(request.path).query)
+        given = query.get(TOKEN_PARAM, [])
+        cookies = [c.split("=", 1) for h in request.headers.get_all("Cookie") for c in h.split(";") if "=" in c]
+        given += [v.strip() for k, v in cookies if k.strip() == self.cookie_name(port)]
+        return any(hmac.compare_digest(g.encode(), self.token.encode()) for g in given)
+
+    def wrap(self, process_request):
+        """websockets' ``process_request`` hook: refuse with 403, else call viser's own ``process_request``
+        (which serves the page over HTTP), and give a browser that came with ``?token=`` its cookie."""
+        async def guarded(connection, request):
+            port = connection.local_address[1]
+            reason = self.refusal(request, port)
+            if reason is not None:
+                return connection.respond(http.HTTPStatus.FORBIDDEN, f"nimbus-view: {reason}\n")
+            response = process_request(connection, request) if process_request is not None else None
+            if inspect.isawaitable(response):
+                response = await response
+            if response is not None and response.status_code == http.HTTPStatus.OK:
+                response.headers["Set-Cookie"] = (f"{self.cookie_name(port)}={self.token}; Path=/; HttpOnly; "
+                                                  "SameSite=Strict")
+            return response
+
+        return guarded
+
+
+_SERVE_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def guarded_serving(guard: AccessGuard) -> Iterator[list]:
+    """Inside the block, a websockets server that viser starts checks every request with ``guard``.
+
+    viser takes no request hook of its own: its server thread calls ``websockets.asyncio.server.serve``
+    with its HTTP handler as ``process_request``, before ``ViserServer()`` returns, so that function is
+    wrapped for the duration of the block.  The list yielded gets one entry per server guarded: empty
+    after the block means viser served some other way and the viewer must not run.  viser's banner
+    (an address without the token, which would be refused) is kept off stdout.
+    """
+    import websockets.asyncio.server as ws_server
+
+    original = ws_server.serve
+    guarded: list = []
+
+    def serve(*args, process_request=None, **kwargs):
+        guarded.append(True)
+        return original(*args, process_request=guard.wrap(process_request), **kwargs)
+
+    with _SERVE_LOCK, contextlib.redirect_stdout(io.StringIO()):
+        ws_server.serve = serve
+        try:
+            yield guarded
+        finally:
+            ws_server.serve = original
 
 
 # --- cameras -------------------------------------------------------------------------------------
@@ -289,17 +418,20 @@ class Viewer:
     nodes : list of str
         The scene nodes added (``/splats``, ``/cameras/train/NAME``, ``/cameras/test/NAME``).
     url : str
+        The address to open, with the launch's token.
+    guard : AccessGuard
     frame_s : float
         Seconds our renderer took for the last streamed frame.
     """
 
-    def __init__(self, server, runner: Runner, config: ViewerConfig) -> None:
+    def __init__(self, server, runner: Runner, config: ViewerConfig, guard: AccessGuard) -> None:
         self.server = server
         self.runner = runner
         self.config = config
+        self.guard = guard
         self.renderer = RunRenderer(runner)
         self.nodes: list[str] = []
-        self.url = url_of(config.host, server.get_port())
+        self.url = f"{url_of(config.host, server.get_port())}/?{TOKEN_PARAM}={guard.token}"
         self.frame_s = float("nan")
         first = runner.scene.train_views[0].camera
         self._view = _View(camera_pose_wxyz(first), first.center, first.fov_y, first.width / first.height)
@@ -424,25 +556,48 @@ class Viewer:
         self.server.stop()
 
 
+def check_render_height(runner: Runner, config: ViewerConfig) -> None:
+    """Refuse a ``render_height`` whose frames cannot fit in memory (:func:`~nimbus.utils.memory.check_sizes`),
+    at the first frame's aspect (training view 0's): the method's render of every layer, and the panel's image."""
+    first = runner.scene.train_views[0].camera
+    aspect = first.width / first.height
+
+    def width(h: int) -> int:
+        return max(1, round(h * aspect))
+
+    def need(h: int) -> float:  # the render, and the panel's uint8 RGB image (its first, blank one is square)
+        return runner.method.frame_bytes(h * width(h)) + 3.0 * h * max(h, width(h))
+
+    check_sizes([SizeCost("--render-height", config.render_height, need, lambda h: f"one frame at {width(h)}x{h}")],
+                torch.device(config.device))
+
+
 def start_viewer(run_dir: str | Path, config: ViewerConfig = ViewerConfig()) -> Viewer:
     """Open the run in ``run_dir`` and serve it; the running :class:`Viewer` (call :meth:`Viewer.stop`).
 
-    Raises NimbusError for a refused address (:func:`check_address`), a busy port, or a folder that is
-    not a readable run.
+    Raises NimbusError for a refused address (:func:`check_address`), a busy port, a folder that is
+    not a readable run, or a render height whose frames cannot fit in memory (:func:`check_render_height`).
     """
     check_address(config.host, config.port, config.allow_remote)
     if config.render_height < 8:
         raise NimbusError(f"--render-height must be at least 8 pixels, got {config.render_height}")
     runner = open_run(run_dir, config.device)
+    check_render_height(runner, config)
     import viser
 
-    server = viser.ViserServer(host=config.host, port=config.port, verbose=False)
+    guard = AccessGuard(config.host, is_loopback(config.host))
+    with guarded_serving(guard) as guarded:
+        server = viser.ViserServer(host=config.host, port=config.port, verbose=False)
+    if not guarded:
+        server.stop()
+        raise NimbusError(f"viser {viser.__version__} serves in a way nimbus-view cannot guard with its token; "
+                          "install the viser version of Nimbus's constraints.txt")
     if config.port and server.get_port() != config.port:  # taken between the check and the bind
         server.stop()
         raise NimbusError(f"port {config.port} on {config.host} is in use; pick another --port, or --port 0 "
                           "for any free one")
     try:
-        return Viewer(server, runner, config)
+        return Viewer(server, runner, config, guard)
     except BaseException:
         server.stop()
         raise

@@ -253,3 +253,101 @@ def test_nimbus_synth_bad_set_exits_2_with_one_line_and_no_output(tmp_path, scen
     assert code == 2 and "Traceback" not in err
     assert err.strip().splitlines() == [err.strip()] and err.startswith(f"error: --set {item}: must be ")
     assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == [] and Path(scene_dir).is_dir()
+
+
+# --- sizes: a huge --set value is refused before the run, with its memory estimate (issue 35) ---------------------
+@pytest.fixture
+def no_runaway(monkeypatch):
+    """Make the two places that ran for hours on a huge value fail at once instead, so a regression fails the
+    test rather than hanging it: the march with millions of samples a ray, the dark channel's huge window."""
+    import torch.nn.functional as F
+
+    from nimbus.nimbusgs import degradation
+
+    march, max_pool2d = degradation.march, F.max_pool2d
+
+    def guarded_march(*args, **kw):
+        assert args[5] < 10**6, f"marched {args[5]} samples a ray"
+        return march(*args, **kw)
+
+    def guarded_pool(x, kernel_size, *args, **kw):
+        assert kernel_size < 10**6, f"a {kernel_size}-pixel minimum filter"
+        return max_pool2d(x, kernel_size, *args, **kw)
+
+    monkeypatch.setattr(degradation, "march", guarded_march)
+    monkeypatch.setattr(F, "max_pool2d", guarded_pool)
+
+
+@pytest.mark.parametrize("method, item, message", [
+    ("nimbus-full", "ray_samples=2147483647", "GiB for one view's march at 64x48"),
+    ("nimbus-full", "grid_resolution=100000", "GiB for the 100000^3 extinction grid"),
+    ("nimbus-full", "airlight_hidden=2147483647", "GiB for the airlight network, 2147483647 wide, on one view at 64x48"),
+    ("3dgs", "tile_size=2147483647", "GiB for the rasterizer's 2147483647x2147483647 tiles"),
+    ("nimbus-full", "tile_size=100000", "GiB for the rasterizer's 100000x100000 tiles"),
+])
+def test_a_huge_size_is_refused_before_the_run_with_its_estimate(tmp_path, scene_dir, capsys, no_runaway, method,
+                                                                  item, message):
+    from nimbus.cli.train import main
+
+    out = tmp_path / "run"
+    short = ["--set", "iterations=4"] + (["--set", "m_init=2"] if method != "3dgs" else [])
+    code, err = _run(main, [scene_dir, "--method", method, "--preset", "tiny", "--out", out, "--quiet", *short,
+                            "--set", item], capsys)
+    assert code == 2 and "Traceback" not in err, err
+    assert err.strip().splitlines() == [err.strip()] and err.startswith(f"error: {item} ")
+    assert message in err and "; the limit is " in err and "use at most " in err
+    assert not out.exists()
+
+
+def test_a_dark_channel_window_wider_than_the_image_is_the_whole_image(no_runaway):
+    """dcp_patch=2**31 ran for hours (the minimum filter walks its padding); every window of at least twice the
+    image gives the whole image's minimum, so the filter uses the smallest of them, with the same result."""
+    import torch
+
+    from nimbus.nimbusgs.airlight import dark_channel_hard
+    from nimbus.nimbusgs.losses import soft_dark_channel
+
+    image = torch.rand(6, 8, 3, generator=torch.Generator().manual_seed(0), requires_grad=True)
+    whole = image.min().expand(6, 8)
+    for patch in (15, 16, 1000, INT_MAX):
+        assert torch.equal(dark_channel_hard(image, patch), whole)
+        soft = soft_dark_channel(image, patch, 0.1)
+        assert torch.equal(soft, soft_dark_channel(image, 15, 0.1)) and torch.allclose(soft, soft.min().expand(6, 8))
+    (grad,) = torch.autograd.grad(soft_dark_channel(image, INT_MAX, 0.1).sum(), image)
+    (expected,) = torch.autograd.grad(soft_dark_channel(image, 15, 0.1).sum(), image)
+    assert torch.equal(grad, expected)
+
+
+def test_the_size_limit_is_the_machines_or_nimbus_memory_limit_gib_and_the_advised_value_fits(scene_dir,
+                                                                                                monkeypatch):
+    """At 1 GiB, one 64x48 view's march fits 2**30 / (64 * 48 * MARCH_BYTES_PER_SAMPLE) samples a ray: one more
+    is refused, that many builds."""
+    from nimbus.data.io import load_scene
+    from nimbus.nimbusgs.scattering import MARCH_BYTES_PER_SAMPLE
+    from nimbus.utils.memory import memory_limit
+
+    scene = load_scene(scene_dir)
+    nimbus = get_method("nimbus-full")
+    fits = 2**30 // (64 * 48 * MARCH_BYTES_PER_SAMPLE)
+    assert memory_limit()[1] in ("this machine's memory", "this container's memory limit")
+    monkeypatch.setenv("NIMBUS_MEMORY_LIMIT_GIB", "1")
+    assert memory_limit() == (2**30, "NIMBUS_MEMORY_LIMIT_GIB")
+    base = apply_overrides(nimbus.preset("tiny"), {"iterations": "4", "m_init": "2"})
+    with pytest.raises(NimbusError, match=rf"^ray_samples={fits + 1} needs about 1(\.0+)? GiB .*the limit is 1 GiB "
+                                          rf"\(NIMBUS_MEMORY_LIMIT_GIB\); use at most {fits}$"):
+        nimbus.load()(scene, dataclasses.replace(base, ray_samples=fits + 1))
+    assert nimbus.load()(scene, dataclasses.replace(base, ray_samples=fits)).cfg.ray_samples == fits
+    monkeypatch.setenv("NIMBUS_MEMORY_LIMIT_GIB", "lots")
+    with pytest.raises(NimbusError, match="NIMBUS_MEMORY_LIMIT_GIB='lots' must be a positive number of GiB"):
+        memory_limit()
+
+
+def test_random_initial_points_are_sized_before_they_are_drawn():
+    from conftest import make_tiny_scene
+    from nimbus.methods.gs3d import GaussianSplatting
+
+    scene = make_tiny_scene(n_points=0)
+    with pytest.raises(NimbusError, match=r"^init_random_points=2147483647 needs about [\d,]+ GiB for 2147483647 "
+                                          r"initial Gaussians"):
+        GaussianSplatting(scene, dataclasses.replace(GS_PRESETS["tiny"], init_random_points=INT_MAX))
+    assert GaussianSplatting(scene, dataclasses.replace(GS_PRESETS["tiny"], init_random_points=50)).num_gaussians == 50

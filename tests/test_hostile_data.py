@@ -2,7 +2,8 @@
 
 Each test builds its hostile input in tmp_path: names that escape the scene (COLMAP txt / bin,
 transforms.json, split lists, links), corrupt COLMAP binary and text models, invalid camera
-values, malformed JSON and PLY, and depth maps that are negative, mostly missing or pickled.
+values, malformed JSON and PLY, and depth maps that are negative, mostly missing or pickled;
+issue 35 adds images that declare billions of pixels and damaged images the decoder only warns about.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import struct
 import subprocess
 import sys
 import textwrap
+import zlib
 from pathlib import Path
 
 import cv2
@@ -508,3 +510,113 @@ def test_depth_files_are_never_unpickled_or_allocated_from_their_header(tmp_path
     with pytest.raises(NimbusError, match="s.npy is unreadable"):
         read_depth(tmp_path / "s.npy")
     assert os.path.getsize(tmp_path / "huge.npy") < 1000
+
+
+# --- images: decompression bombs, headers past OpenCV's limit, damaged files (issue 35) -------------------
+def _png_claiming(width: int, height: int) -> bytes:
+    """A few hundred bytes of PNG whose header declares ``width`` x ``height`` (its IHDR patched, CRC fixed)."""
+    ok, buf = cv2.imencode(".png", np.zeros((4, 4), np.uint8))
+    png = bytearray(buf.tobytes())
+    png[16:24] = struct.pack(">II", width, height)
+    png[29:33] = struct.pack(">I", zlib.crc32(bytes(png[12:29])))
+    return bytes(png)
+
+
+def _never_decoded(monkeypatch) -> list:
+    """Record every call of OpenCV's decoder (a refused bomb must be refused from its header alone)."""
+    calls = []
+    monkeypatch.setattr(cv2, "imdecode", lambda *a, **k: calls.append(a) or None)
+    monkeypatch.setattr(cv2, "imread", lambda *a, **k: calls.append(a) or None)
+    return calls
+
+
+def test_a_decompression_bomb_named_by_a_scene_is_refused_from_its_header(tmp_path, monkeypatch):
+    """A Blender scene takes its image size from the file: a PNG declaring 30000 x 30000 is refused before
+    any pixel is decoded, naming the file, its size and the limit."""
+    _blender_bomb = _transforms_scene(tmp_path / "s", top={"w": None, "h": None, "fl_x": None, "camera_angle_x": 0.7})
+    bomb = _blender_bomb / "images" / "1.png"
+    bomb.write_bytes(_png_claiming(30000, 30000))
+    assert bomb.stat().st_size < 1000
+    calls = _never_decoded(monkeypatch)
+    with pytest.raises(NimbusError) as info:
+        scene = load_scene(_blender_bomb)
+        for view in scene.views:
+            view.load_image()
+    message = str(info.value)
+    assert str(bomb) in message and "30000x30000" in message and "limit of 100 megapixels" in message
+    assert "NIMBUS_MAX_IMAGE_PIXELS" in message
+    assert calls == []
+
+
+@pytest.mark.parametrize("reader", ["image", "mask", "depth"])
+def test_every_image_reader_refuses_an_oversized_header_before_decoding(tmp_path, monkeypatch, reader):
+    from nimbus.data.images import read_image, read_mask
+
+    path = tmp_path / "big.png"
+    path.write_bytes(_png_claiming(40000, 40000))  # past OpenCV's own 2**30 pixels: its error was a traceback
+    calls = _never_decoded(monkeypatch)
+    read = {"image": read_image, "mask": read_mask, "depth": read_depth}[reader]
+    with pytest.raises(NimbusError, match=r"big\.png is 40000x40000 .*limit"):
+        read(path)
+    assert calls == []
+
+
+def test_the_pixel_limit_is_overridable_and_opencvs_own_limit_is_one_error_line(tmp_path, monkeypatch):
+    from nimbus.data.images import read_image
+
+    small = tmp_path / "small.png"
+    write_image(small, np.zeros((12, 16, 3), np.float32))
+    monkeypatch.setenv("NIMBUS_MAX_IMAGE_PIXELS", "100")
+    with pytest.raises(NimbusError, match=r"small\.png is 16x12 .*limit of 0\.0001 megapixels"):
+        read_image(small)
+    monkeypatch.setenv("NIMBUS_MAX_IMAGE_PIXELS", "192")
+    assert read_image(small).shape == (12, 16, 3)
+    monkeypatch.setenv("NIMBUS_MAX_IMAGE_PIXELS", "lots")
+    with pytest.raises(NimbusError, match="NIMBUS_MAX_IMAGE_PIXELS='lots' must be a whole number"):
+        read_image(small)
+    monkeypatch.setenv("NIMBUS_MAX_IMAGE_PIXELS", str(10**10))  # ours allows it; OpenCV's limit still holds
+    (tmp_path / "big.png").write_bytes(_png_claiming(40000, 40000))
+    with pytest.raises(NimbusError, match=r"big\.png cannot be decoded"):
+        read_image(tmp_path / "big.png")
+
+
+def _jpeg(tmp_path: Path, name: str, damage) -> Path:
+    rng = np.random.default_rng(0)
+    ok, buf = cv2.imencode(".jpg", (rng.random((48, 64, 3)) * 255).astype(np.uint8))
+    path = tmp_path / name
+    path.write_bytes(damage(buf.tobytes()))
+    return path
+
+
+def _flip(data: bytes) -> bytes:
+    data = bytearray(data)
+    data[len(data) // 2] ^= 0xFF
+    return bytes(data)
+
+
+@pytest.mark.parametrize("name, damage, message", [
+    ("cut.jpg", lambda d: d[: len(d) // 2] + b"\xff\xd9", "premature end of data segment"),  # end marker re-added
+    ("flipped.jpg", _flip, "corrupt JPEG data"),
+    ("no_end.jpg", lambda d: d[: len(d) // 2], "truncated"),
+])
+def test_a_damaged_jpeg_that_the_decoder_only_warns_about_is_refused(tmp_path, capfd, name, damage, message):
+    """libjpeg warns on stderr and fills the missing part grey; the image is refused, naming the file."""
+    from nimbus.data.images import read_image
+
+    path = _jpeg(tmp_path, name, damage)
+    with pytest.raises(NimbusError) as info:
+        read_image(path)
+    assert str(path) in str(info.value) and message.lower() in str(info.value).lower()
+    assert read_image(_jpeg(tmp_path, "whole.jpg", lambda d: d)).shape == (48, 64, 3)
+    assert "Corrupt JPEG" not in capfd.readouterr().err  # said once, in the error
+
+
+def test_a_damaged_png_is_refused_naming_the_file(tmp_path):
+    from nimbus.data.images import read_image
+
+    ok, buf = cv2.imencode(".png", (np.random.default_rng(0).random((48, 64, 3)) * 255).astype(np.uint8))
+    for name, data in (("crc.png", _flip(buf.tobytes())), ("cut.png", buf.tobytes()[: len(buf) // 2]),
+                       ("short.png", _png_claiming(64, 48))):  # valid chunks, too little pixel data
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(NimbusError, match=rf"image .*{name} is (unreadable or corrupt|truncated)"):
+            read_image(tmp_path / name)

@@ -153,3 +153,48 @@ def test_bad_json_missing_image_and_bad_matrix(tmp_path):
     _nerfstudio_scene(tmp_path / "d", frames_extra={"w": 99})
     with pytest.raises(NimbusError, match="frame_00000.png is 16x12"):
         load_scene(tmp_path / "d")
+
+
+def _long_transforms(root, n_frames: int, duplicate_at: int | None = None, duplicate_name: str = "images/0.png",
+                     blender: bool = False):
+    """A transforms.json of ``n_frames`` frames over 3 image files (only frames 0-2 name files that exist),
+    frame ``duplicate_at`` naming ``duplicate_name`` again; Blender's file when ``blender``."""
+    for i in range(3):
+        write_image(root / "images" / f"{i}.png", np.zeros((12, 16, 3), np.float32))
+    frames = [{"file_path": f"images/{i}.png", "transform_matrix": np.eye(4).tolist()} for i in range(n_frames)]
+    if duplicate_at is not None:
+        frames[duplicate_at]["file_path"] = duplicate_name
+    meta = {"fl_x": 20.0, "fl_y": 20.0, "cx": 8.0, "cy": 6.0, "w": 16, "h": 12, "frames": frames}
+    (root / ("transforms_train.json" if blender else "transforms.json")).write_text(json.dumps(meta))
+    return root
+
+
+@pytest.mark.parametrize("name", ["images/0.png", "./images/0.png", "images/0"])  # "images/0": .png is added
+def test_a_duplicate_frame_is_refused_before_the_frames_after_it_are_resolved(tmp_path, monkeypatch, name):
+    """20,000 frames, the third naming the first's image again: refused at the third, naming both frames,
+    without resolving the other 19,997 (that took minutes for a 200 MB transforms.json)."""
+    from nimbus.data import transforms
+
+    root = _long_transforms(tmp_path / "s", 20_000, duplicate_at=2, duplicate_name=name)
+    resolved = []
+    resolve = transforms._resolve_image
+    monkeypatch.setattr(transforms, "_resolve_image", lambda *a: resolved.append(a[1]) or resolve(*a))
+    with pytest.raises(NimbusError) as info:
+        load_scene(root)
+    message = str(info.value)
+    assert f"frame 2 ({name}) lists the same image as " in message and "frame 0 (images/0.png)" in message
+    assert len(resolved) <= 3
+
+
+def test_a_long_scene_load_shows_its_progress_on_stderr(tmp_path, monkeypatch, capsys):
+    """After SHOW_AFTER_S seconds (made 0 here) the frames being read are counted on stderr; a quick load
+    prints nothing."""
+    from nimbus.utils import progress
+
+    root = _long_transforms(tmp_path / "s", 3)
+    load_scene(root)
+    assert capsys.readouterr().err == ""
+    monkeypatch.setattr(progress, "SHOW_AFTER_S", 0.0)
+    load_scene(root)
+    err = capsys.readouterr().err
+    assert "reading transforms.json" in err and "/3 [" in err and "frame/s" in err

@@ -2,8 +2,14 @@
 
 from __future__ import annotations
 
+import http.client
+import os
 import shutil
+import signal
 import socket
+import subprocess
+import sys
+import urllib.parse
 import urllib.request
 from pathlib import Path
 
@@ -61,11 +67,120 @@ def _can_bind(port: int) -> bool:
 
 # --- serving ------------------------------------------------------------------------------------
 def test_answers_http_on_localhost(viewer):
-    assert viewer.url == f"http://127.0.0.1:{viewer.port}" and viewer.port > 0
-    with urllib.request.urlopen(viewer.url + "/", timeout=30) as response:
+    assert viewer.url.startswith(f"http://127.0.0.1:{viewer.port}/?token=") and viewer.port > 0
+    with urllib.request.urlopen(viewer.url, timeout=30) as response:
         assert response.status == 200
         body = response.read()
     assert b"<html" in body[:2000].lower()
+
+
+# --- who may connect: this machine's pages that know the printed URL -------------------------------
+def _get(port: int, path: str, host: str | None = None, headers: dict | None = None) -> http.client.HTTPResponse:
+    """``GET path`` from 127.0.0.1:``port`` with ``Host: host`` (default: the server's own address)."""
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+    conn.putrequest("GET", path, skip_host=True)
+    conn.putheader("Host", host or f"127.0.0.1:{port}")
+    for k, v in (headers or {}).items():
+        conn.putheader(k, v)
+    conn.endheaders()
+    response = conn.getresponse()
+    response.body = response.read()
+    conn.close()
+    return response
+
+
+def _token(url: str) -> str:
+    return urllib.parse.parse_qs(urllib.parse.urlsplit(url).query).get("token", [""])[0]
+
+
+def _websocket(port: int, path: str = "/", origin: str | None = None, cookie: str | None = None):
+    """A viser client's websocket handshake (its protocol version, our Origin and Cookie); the connection."""
+    import viser
+    from websockets.sync.client import connect
+
+    return connect(f"ws://127.0.0.1:{port}{path}", origin=origin, proxy=None, open_timeout=30,
+                   subprotocols=[f"viser-v{viser.__version__}"], max_size=None,
+                   additional_headers={"Cookie": cookie} if cookie else None)
+
+
+def _refused(port: int, **kw) -> int:
+    """The HTTP status a refused websocket handshake got (fails the test if it was accepted)."""
+    from websockets.exceptions import InvalidStatus
+
+    with pytest.raises(InvalidStatus) as info:
+        _websocket(port, **kw).close()
+    return info.value.response.status_code
+
+
+def test_http_needs_the_token_and_the_servers_own_host_name(viewer):
+    port, token = viewer.port, _token(viewer.url)
+    # A page of another site that rebinds its name to 127.0.0.1 sends its own name as Host.
+    assert _get(port, f"/?token={token}", host=f"evil.example:{port}").status == 403
+    assert _get(port, f"/?token={token}", host="evil.example").status == 403
+    assert _get(port, f"/?token={token}").status == 200
+    assert _get(port, f"/?token={token}", host=f"localhost:{port}").status == 200
+    assert len(token) >= 32
+    for path in ("/", "/?token=", f"/?token={token[:-1]}", f"/?token={token}x", "/index.html"):
+        refused = _get(port, path)
+        assert refused.status == 403 and b"<html" not in refused.body.lower(), path
+
+
+def test_websocket_needs_the_token_and_an_origin_of_this_viewer(viewer):
+    port, token = viewer.port, _token(viewer.url)
+    own = f"http://127.0.0.1:{port}"
+    assert _refused(port, path=f"/?token={token}", origin="http://evil.example") == 403
+    assert _refused(port, path=f"/?token={token}", origin=f"http://evil.example:{port}") == 403
+    assert _refused(port, path=f"/?token={token}", origin="null") == 403
+    assert _refused(port, origin=own) == 403
+    assert _refused(port, path="/?token=wrong", origin=own) == 403
+    assert _refused(port, origin=own, cookie=f"nimbus_view_{port}=wrong") == 403
+    with _websocket(port, path=f"/?token={token}", origin=own) as ws:
+        assert len(ws.recv(timeout=30)) > 0  # the scene's messages
+
+
+def test_the_page_hands_its_token_to_its_websocket_by_cookie(viewer):
+    """The browser loads the printed URL, keeps the cookie it is given, and opens the websocket to the bare
+    address (viser's page drops the query): the cookie carries the token."""
+    port = viewer.port
+    page = _get(port, "/" + viewer.url.split("/", 3)[3])
+    assert page.status == 200
+    cookie = page.headers["Set-Cookie"]
+    assert "HttpOnly" in cookie and "SameSite=Strict" in cookie
+    pair = cookie.split(";")[0]
+    assert pair == f"nimbus_view_{port}={_token(viewer.url)}"
+    assert _get(port, "/", headers={"Cookie": pair}).status == 200
+    with _websocket(port, origin=f"http://localhost:{port}", cookie=pair) as ws:
+        assert len(ws.recv(timeout=30)) > 0
+    assert _refused(port, origin="http://evil.example", cookie=pair) == 403
+
+
+def test_the_printed_url_opens_the_viewer(nimbus_run, tmp_path):
+    """nimbus-view prints a URL with a fresh token that the server accepts; another launch gets another."""
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "OMP_NUM_THREADS": "1"}
+    tokens = []
+    for i in range(2):
+        with open(tmp_path / f"stderr{i}", "w") as err:
+            proc = subprocess.Popen([sys.executable, "-m", "nimbus.cli.view", str(nimbus_run), "--port", "0",
+                                     "--render-height", "12"], stdout=subprocess.PIPE, stderr=err, text=True, env=env)
+        try:
+            printed = []
+            while len(printed) < 20 and not printed[-1:] == [""]:  # "" is the end: it stopped
+                printed.append(proc.stdout.readline())
+                if printed[-1].startswith("nimbus-view: open "):
+                    break
+            assert printed[-1].startswith("nimbus-view: open "), (printed, (tmp_path / f"stderr{i}").read_text())
+            url = printed[-1].split()[2]
+            port = urllib.parse.urlsplit(url).port
+            with urllib.request.urlopen(url, timeout=30) as response:
+                assert response.status == 200
+            assert _get(port, "/").status == 403
+            with _websocket(port, path="/?" + urllib.parse.urlsplit(url).query, origin=f"http://127.0.0.1:{port}") as ws:
+                assert len(ws.recv(timeout=30)) > 0
+            tokens.append(_token(url))
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            proc.wait(timeout=60)
+    assert tokens[0] != tokens[1]
 
 
 def test_scene_holds_the_splats_and_one_frustum_per_view(viewer):
@@ -184,6 +299,18 @@ def test_cli_refuses_a_non_local_host_in_one_line(nimbus_run, capsys):
     assert len(err) == 1 and err[0].startswith("error: ") and "--allow-remote" in err[0]
 
 
+def test_a_render_height_that_cannot_fit_is_refused_with_its_estimate(nimbus_run, capsys):
+    """A frame's height is checked against memory at the first frame's aspect (4:3) before the server starts."""
+    with pytest.raises(NimbusError, match=r"^--render-height=1000000 needs about [\d,]+ GiB for one frame at "
+                                          r"1333333x1000000; the limit is .* GiB .*; use at most \d+$"):
+        start_viewer(nimbus_run, ViewerConfig(port=0, render_height=1_000_000))
+    with pytest.raises(SystemExit) as info:
+        view_main([str(nimbus_run), "--port", "0", "--render-height", "100000"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: --render-height=100000 needs about "), err
+
+
 def test_busy_port_is_an_error_not_another_port(nimbus_run):
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
@@ -197,7 +324,7 @@ def test_stop_frees_the_port_and_the_render_thread(nimbus_run):
     v = start_viewer(nimbus_run, ViewerConfig(port=0, render_height=12))
     port = v.port
     assert not _can_bind(port)
-    with urllib.request.urlopen(v.url + "/", timeout=30) as response:
+    with urllib.request.urlopen(v.url, timeout=30) as response:
         assert response.status == 200
     v.stop()
     assert not v._thread.is_alive()

@@ -2,10 +2,12 @@
 
 Examples::
 
-    nimbus-view runs/garden-nimbus                  # then open http://127.0.0.1:8080
-    nimbus-view runs/garden-nimbus --port 0         # any free port (printed)
+    nimbus-view runs/garden-nimbus                  # then open the printed http://127.0.0.1:8080/?token=...
+    nimbus-view runs/garden-nimbus --port 0         # any free port
     nimbus-view runs/garden-nimbus --host 0.0.0.0 --allow-remote   # reachable from other machines
 
+The printed address holds a secret token drawn for this launch: requests without it are refused,
+as are requests by another host name or from another site's page (see :mod:`nimbus.viewer`).
 Ctrl-C (or a SIGTERM) stops the server.
 """
 

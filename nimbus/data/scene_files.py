@@ -14,16 +14,15 @@ from __future__ import annotations
 import logging
 import os
 import shutil
-import struct
 from dataclasses import replace
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from nimbus.data.images import IMAGE_EXTENSIONS, write_depth, write_image, write_mask
+from nimbus.data.images import IMAGE_EXTENSIONS, image_size, write_depth, write_image, write_mask
 from nimbus.data.scene import Scene, View, scene_file, write_split_lists
 from nimbus.errors import NimbusError
+from nimbus.utils.progress import slow_progress
 
 log = logging.getLogger(__name__)
 
@@ -51,57 +50,6 @@ def format_names(names: list[str]) -> str:
     names = sorted(names)
     head = ", ".join(names[:MAX_LISTED_NAMES])
     return head + (f" (and {len(names) - MAX_LISTED_NAMES} more)" if len(names) > MAX_LISTED_NAMES else "")
-
-
-def image_size(path: str | os.PathLike) -> tuple[int, int]:
-    """``(width, height)`` of an image file, from the PNG / JPEG header when possible (no decoding)."""
-    path = Path(path)
-    try:
-        with open(path, "rb") as f:
-            head = f.read(1 << 16)
-            size = _png_size(head) or _jpeg_size(f, head)
-    except OSError:
-        raise NimbusError(f"image {path} does not exist or is unreadable") from None
-    if size is not None:
-        return size
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise NimbusError(f"image {path} is unreadable or corrupt; replace or remove it")
-    return img.shape[1], img.shape[0]
-
-
-def _png_size(head: bytes) -> tuple[int, int] | None:
-    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
-        return struct.unpack(">II", head[16:24])
-    return None
-
-
-def _jpeg_size(f, head: bytes) -> tuple[int, int] | None:
-    """Walk the JPEG markers to the first start-of-frame segment."""
-    if head[:2] != b"\xff\xd8":
-        return None
-    f.seek(2)
-    while True:
-        marker = f.read(2)
-        if len(marker) < 2 or marker[0] != 0xFF:
-            return None
-        kind = marker[1]
-        if kind == 0xFF:  # fill byte
-            f.seek(-1, 1)
-            continue
-        if kind in (0xD8, 0x01) or 0xD0 <= kind <= 0xD7:  # markers without a length field
-            continue
-        seg = f.read(2)
-        if len(seg) < 2:
-            return None
-        length = struct.unpack(">H", seg)[0]
-        if 0xC0 <= kind <= 0xCF and kind not in (0xC4, 0xC8, 0xCC):
-            data = f.read(5)
-            if len(data) < 5:
-                return None
-            h, w = struct.unpack(">HH", data[1:5])
-            return w, h
-        f.seek(length - 2, 1)
 
 
 def aux_dirs(downscale: int) -> tuple[str, str, str]:
@@ -157,7 +105,7 @@ def check_points_finite(points: np.ndarray, source: str | os.PathLike) -> None:
 def check_image_sizes(views: list[View], hint: str) -> None:
     """Check every view's image file against its camera size; NimbusError naming the first mismatches."""
     bad = []
-    for v in views:
+    for v in slow_progress(views, "checking image sizes", len(views), "image"):
         w, h = image_size(v.image_path)
         if (w, h) != (v.camera.width, v.camera.height):
             bad.append(f"{v.image_path} is {w}x{h}, camera {v.camera.width}x{v.camera.height}")

@@ -39,6 +39,7 @@ import numpy as np
 import pycolmap
 
 from nimbus.data.colmap import PINHOLE_MODELS, read_colmap
+from nimbus.data.images import image_size
 from nimbus.data.scene_files import list_images
 from nimbus.data.scene import Scene
 from nimbus.errors import NimbusError
@@ -372,19 +373,9 @@ def exif_focal_px(path: str | os.PathLike) -> float | None:
 
 
 def _photo_size(path: Path) -> tuple[int, int]:
-    """(width, height) from the file header (Pillow) or by decoding (OpenCV)."""
-    try:
-        from PIL import Image
-
-        with Image.open(path) as im:
-            return im.size
-    except Exception:
-        import cv2
-
-        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise NimbusError(f"cannot read photo {path}; remove it or convert it to PNG / JPEG") from None
-        return img.shape[1], img.shape[0]
+    """(width, height) from the file header, refused above the pixel limit (:func:`nimbus.data.images.image_size`):
+    every photo is sized before pycolmap decodes any, so a decompression bomb stops here."""
+    return image_size(path)
 
 
 def resolve_prior(photos_dir: Path, photos: list[str], config: SfmConfig, model: str) -> tuple[CameraPrior | None,
@@ -471,14 +462,16 @@ def run_sfm(photos_dir: str | os.PathLike, out_dir: str | os.PathLike, overwrite
     Raises
     ------
     NimbusError
-        No photos, output folder not empty (without ``overwrite``) or inside the
-        photos, a prior that does not fit the photos, or no reconstruction (too little
-        overlap or texture).
+        No photos, a photo that is not a PNG, JPEG, TIFF or BMP or is larger than the pixel limit
+        (:func:`nimbus.data.images.image_size`), output folder not empty (without ``overwrite``) or inside
+        the photos, a prior that does not fit the photos, or no reconstruction (too little overlap or texture).
     """
     config = replace(config, **changes)
     say = log or (lambda _msg: None)
     photos_dir, out_dir = Path(photos_dir), Path(out_dir)
     photos = list_photos(photos_dir)
+    for p in photos:  # sized from their headers before pycolmap decodes them: an oversized photo is refused here
+        _photo_size(photos_dir / p)
     src, dst = photos_dir.resolve(), out_dir.resolve()
     if dst == src or dst in src.parents or src in dst.parents:
         raise NimbusError(f"--out {out_dir} must be outside the photo folder {photos_dir} (and not contain it)")

@@ -31,12 +31,13 @@ from nimbus.metrics import peak_signal_noise_ratio
 from nimbus.methods.base import TrainingDiverged, default_device
 from nimbus.render.gaussians import GaussianInitConfig, Gaussians, init_from_scene
 from nimbus.render.projection import ProjectionConfig
-from nimbus.render.rasterize import RasterConfig, means2d_grad, rasterize
+from nimbus.render.rasterize import FRAME_BYTES_PER_PIXEL, RasterConfig, means2d_grad, rasterize, tile_buffer_bytes
 from nimbus.train.config import TrainConfig
 from nimbus.train.frame import SceneFrame
-from nimbus.train.params import GaussianParams
+from nimbus.train.params import BYTES_PER_GAUSSIAN, GaussianParams
 from nimbus.train.strategy import DefaultStrategy
 from nimbus.train.views import downscaled_view, view_mask
+from nimbus.utils.memory import SizeCost, check_sizes
 
 
 class GaussianSplatting:
@@ -72,6 +73,8 @@ class GaussianSplatting:
         np.random.seed(self.seed % 2**32)
         self.gen = torch.Generator().manual_seed(self.seed)
         self.train_views: list[View] = [downscaled_view(v, config.train_downscale) for v in scene.train_views]
+        # Before anything sized by the config is allocated: a huge --set value is one error, not a crash or a hang.
+        check_sizes(self.size_costs(), self.device)
         self.train_images = [torch.from_numpy(v.load_image()).to(self.device) for v in self.train_views]
         #: Per training view, its validity mask (bool [H, W] on the device) or None: views without a
         #: mask take the plain loss, with no all-ones tensor on the hot path.
@@ -101,6 +104,23 @@ class GaussianSplatting:
 
     def setup_events(self) -> list[tuple[str, dict]]:
         return []
+
+    def size_costs(self) -> list[SizeCost]:
+        """What each size-like config field would allocate at this scene's sizes (:func:`check_sizes` refuses
+        one that cannot fit before anything is allocated).  A method adds its own fields to ``super()``'s."""
+        c = self.cfg
+        threads = torch.get_num_threads()
+        costs = [SizeCost("tile_size", c.tile_size, lambda t: tile_buffer_bytes(t, c.backend, threads),
+                          lambda t: f"the rasterizer's {t}x{t} tiles ({c.backend} backend, {threads} thread(s))")]
+        if not len(self.scene.points):  # the random initialisation
+            costs.append(SizeCost("init_random_points", c.init_random_points, lambda n: n * BYTES_PER_GAUSSIAN,
+                                  lambda n: f"{n} initial Gaussians and their optimiser state"))
+        return costs
+
+    def frame_bytes(self, pixels: int) -> float:
+        """About how many bytes one render of ``pixels`` pixels takes besides the model (every layer the
+        method draws for it; what the viewer sizes its frames by)."""
+        return float(pixels) * FRAME_BYTES_PER_PIXEL
 
     # --- the model ---------------------------------------------------------------------
     @property

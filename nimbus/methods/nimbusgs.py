@@ -46,7 +46,7 @@ from torch import Tensor
 from nimbus.data import Camera
 from nimbus.data.images import write_image
 from nimbus.methods.gs3d import GaussianSplatting
-from nimbus.nimbusgs.airlight import view_descriptor
+from nimbus.nimbusgs.airlight import network_airlight_bytes, view_descriptor
 from nimbus.nimbusgs.auto import (ParticleEvidence, haze_evidence, particle_evidence, particle_thresholds,
                                   residual_tail_counts)
 from nimbus.nimbusgs.config import NimbusConfig
@@ -58,10 +58,12 @@ from nimbus.nimbusgs.losses import dcp_loss, stage_loss
 from nimbus.nimbusgs.particulate import ViewGeometry, is_refresh_step
 from nimbus.restore import pixel_sizes
 from nimbus.restore.classical import RestoreConfig, classical_restore, dehaze, remove_particles
-from nimbus.nimbusgs.scattering import Box, ExtinctionGrid, ViewRays, camera_rays
+from nimbus.nimbusgs.scattering import (GRID_BYTES_PER_VOXEL, MARCH_BYTES_PER_SAMPLE, Box, ExtinctionGrid, ViewRays,
+                                        camera_rays)
 from nimbus.render.gaussians import Gaussians
 from nimbus.render.rasterize import rasterize
 from nimbus.render.sh import rgb_to_sh, sh_to_rgb
+from nimbus.utils.memory import SizeCost
 
 #: Smallest side of a written extinction slice (pixels); small grids are upsampled (nearest).
 _SLICE_MIN_SIDE = 128
@@ -118,6 +120,36 @@ class NimbusGS(GaussianSplatting):
             "mode": "auto" if self.auto else "forced", "csm": self.use_csm, "haze_evidence": self.haze.to_dict(),
             "estimated_time_saved_s": self.time_saved.get("csm_ray_march_s", 0.0)}))
         self._sync_stage(1)
+
+    # --- sizes --------------------------------------------------------------------------
+    def size_costs(self) -> list[SizeCost]:
+        """3DGS's, plus the ray march (per view), the extinction grid and the airlight network, at the largest
+        training view (the views are trained one at a time)."""
+        c = self.cfg
+        costs = super().size_costs()
+        cam = max((v.camera for v in self.train_views), key=lambda cam: cam.width * cam.height)
+        pixels, size = cam.width * cam.height, f"{cam.width}x{cam.height}"
+        if c.extinction != "gaussian":
+            costs.append(SizeCost("ray_samples", c.ray_samples, lambda k: float(pixels) * k * MARCH_BYTES_PER_SAMPLE,
+                                  lambda k: f"one view's march at {size} ({k} samples a ray)"))
+        if c.extinction == "grid":
+            costs.append(SizeCost("grid_resolution", c.grid_resolution, lambda r: float(r) ** 3 * GRID_BYTES_PER_VOXEL,
+                                  lambda r: f"the {r}^3 extinction grid and its optimiser state"))
+        if c.airlight == "network":
+            s = c.airlight_stride
+            blocks = -(-cam.width // s) * -(-cam.height // s)
+            costs.append(SizeCost("airlight_hidden", c.airlight_hidden, lambda n: network_airlight_bytes(n, blocks),
+                                  lambda n: f"the airlight network, {n} wide, on one view at {size}"))
+        return costs
+
+    def frame_bytes(self, pixels: int) -> float:
+        """3DGS's, plus the march and the airlight of the degraded layers."""
+        c, need = self.cfg, super().frame_bytes(pixels)
+        if c.extinction != "gaussian":
+            need += float(pixels) * c.ray_samples * MARCH_BYTES_PER_SAMPLE
+        if c.airlight == "network":
+            need += network_airlight_bytes(c.airlight_hidden, -(-pixels // c.airlight_stride ** 2))
+        return need
 
     # --- parameters ---------------------------------------------------------------------
     def _gaussian_extinction(self) -> bool:

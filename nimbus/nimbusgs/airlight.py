@@ -32,15 +32,31 @@ from nimbus.render.sh import num_sh_bases, sh_basis
 DESCRIPTOR_SIZE = 6
 #: Input features of the network airlight per ``airlight_input``: (d, T, descriptor) or (I_in pixel, T).
 _NETWORK_INPUTS = {"view": 3 + 1 + DESCRIPTOR_SIZE, "pixel": 3 + 1}
+#: About how many bytes the network airlight takes per weight (its ``hidden x hidden`` layer dominates): the
+#: weight, its gradient, two Adam moments and the compiled kernel's copies.  Measured on the CPU (one forward,
+#: backward and Adam step, widths 4096 and 8192): 25 to 29 with the compiled kernel, 9 to 10 without.
+AIRLIGHT_BYTES_PER_WEIGHT = 32
+#: About how many bytes per hidden unit per evaluated pixel (the activations kept for the backward pass).
+#: Measured as above at 65,536 pixels, widths 256 and 1024: 10 to 13 compiled, 20 with torch ops.
+AIRLIGHT_BYTES_PER_ACTIVATION = 24
 #: Fraction of the brightest dark-channel pixels whose colour estimates the airlight (He et al.: 0.1 %).
 AIRLIGHT_TOP_FRACTION = 0.001
 #: Bounds of the initial airlight estimate, so its logit is finite.
 _A_MIN, _A_MAX = 0.02, 0.98
 
 
+def dark_channel_window(patch: int, height: int, width: int) -> int:
+    """The window a ``patch`` x ``patch`` minimum filter of an ``height`` x ``width`` image needs: ``patch``, or
+    ``2 * max(height, width) - 1`` if that is smaller, since that window already spans the whole image from every
+    pixel (the same minimum, and the same pixel chosen).  A wider one only costs time: torch's filter walks its
+    padding pixel by pixel, so ``dcp_patch=2**31`` ran for hours."""
+    return min(int(patch), 2 * max(height, width) - 1)
+
+
 def dark_channel_hard(image: Tensor, patch: int) -> Tensor:
     """min over colour and over a ``patch`` x ``patch`` window: ``[H, W, 3] -> [H, W]``."""
     x = image.min(dim=-1).values[None, None]
+    patch = dark_channel_window(patch, image.shape[0], image.shape[1])
     pad = patch // 2
     return -F.max_pool2d(-x, patch, stride=1, padding=pad)[0, 0, : image.shape[0], : image.shape[1]]
 
@@ -146,6 +162,11 @@ class NetworkAirlight(nn.Module):
         for layer in self.mlp[1:]:
             h = layer(h)
         return torch.sigmoid(base + h)
+
+
+def network_airlight_bytes(hidden: int, points: int) -> float:
+    """About how many bytes the network airlight of width ``hidden`` takes to train on ``points`` pixels (or blocks)."""
+    return float(hidden) * hidden * AIRLIGHT_BYTES_PER_WEIGHT + float(hidden) * points * AIRLIGHT_BYTES_PER_ACTIVATION
 
 
 def make_airlight(kind: str, init: Tensor, hidden: int, sh_degree: int, inputs: str = "view",

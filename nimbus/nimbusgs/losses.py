@@ -10,6 +10,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from nimbus.losses import photometric_loss
+from nimbus.nimbusgs.airlight import dark_channel_window
 
 
 def soft_dark_channel(image: Tensor, patch: int, temperature: float) -> Tensor:
@@ -26,6 +27,7 @@ def soft_dark_channel(image: Tensor, patch: int, temperature: float) -> Tensor:
     else:
         m = image.min(dim=-1).values
     h, w_ = m.shape
+    patch = dark_channel_window(patch, h, w_)
     return -F.max_pool2d(-m[None, None], patch, stride=1, padding=patch // 2)[0, 0, :h, :w_]
 
 

@@ -88,6 +88,12 @@ class CompositeConfig:
     chunk: int = 64
     batch_elements: int = 1 << 19
 
+    def block_bytes(self, tile_size: int) -> float:
+        """About how many bytes the largest dense block takes at ``tile_size``: ten float32 tensors of its
+        elements; a (sub-)tile whose ``pixels x chunk`` alone exceeds ``batch_elements`` is a block by itself."""
+        sub = _subtile_size(tile_size, self)
+        return max(self.batch_elements, float(sub) * sub * self.chunk) * 10 * 4
+
 
 def composite(
     means2d: Tensor,

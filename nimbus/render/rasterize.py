@@ -22,6 +22,22 @@ from nimbus.render.gaussians import Gaussians
 from nimbus.render.projection import ProjectionConfig
 
 
+#: Bytes per pixel of a tile in the compiled kernel's scratch, one scratch per thread: the forward keeps five
+#: float sums, a count and a flag, the backward seven sums and a count (``csrc/composite.cpp``).
+TILE_SCRATCH_BYTES_PER_PIXEL = 32
+#: About how many bytes one rendered frame takes per pixel besides the tiles: rgb, depth, alpha, final
+#: transmittance and contributor count (float32 / int32), and their copies on the way to an image.
+FRAME_BYTES_PER_PIXEL = 64
+
+
+def tile_buffer_bytes(tile_size: int, backend: str, threads: int, composite: "CompositeConfig | None" = None) -> float:
+    """About how many bytes a backend's per-tile working buffers take at ``tile_size``: the torch compositor's
+    largest block (:meth:`CompositeConfig.block_bytes`), else the compiled kernel's scratch on ``threads`` threads."""
+    if backend == "torch":
+        return (composite or CompositeConfig()).block_bytes(tile_size)
+    return float(tile_size) ** 2 * TILE_SCRATCH_BYTES_PER_PIXEL * threads
+
+
 @dataclass(frozen=True)
 class RasterConfig:
     """Rasterizer settings.

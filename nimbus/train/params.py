@@ -5,6 +5,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+#: About how many bytes one Gaussian takes while training: 59 float32 parameters at SH degree 3, their gradient
+#: and two Adam moments (944), rounded up.
+BYTES_PER_GAUSSIAN = 1024
+
 
 def adam(groups: list[dict], eps: float) -> torch.optim.Adam:
     """Adam over parameter ``groups`` (each with its own ``lr``), fused when every parameter is on the CPU.
