@@ -1,0 +1,1 @@
+"""Developer and research scripts, run from a checkout with ``python -m tools.NAME`` (not installed)."""
