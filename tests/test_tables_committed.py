@@ -1,7 +1,7 @@
 """The committed table folders that hold their records regenerate from them byte for byte.
 
-``tables/small_fast_6methods`` (issue 17's grid) and ``tables/cuda_check_small_fast`` (its CUDA check) keep
-their ``results.jsonl``; the commands their READMEs give must write exactly the committed files, so a change
+``tables/small_fast_6methods`` (issue 17's grid), ``tables/cuda_check_small_fast`` (its CUDA check) and
+``tables/default_tiny`` (the README main job) keep their ``results.jsonl``; the commands their READMEs give must write exactly the committed files, so a change
 to a table layout that moves a committed figure or sentence shows here, not in a reader's diff.
 """
 
@@ -50,3 +50,14 @@ def test_cuda_check_regenerates(issue17, tmp_path, capsys):
                               "--methods", METHODS, "--out", str(out)]) == 0
     capsys.readouterr()
     same_files(out, TABLES / "cuda_check_small_fast")
+
+
+def test_default_tiny_tables_regenerate(tmp_path, capsys):
+    """The README main job's tables (three scenes, seven settings, three seeds on the hazy ones, the ceiling)."""
+    root = tmp_path / "bench_runs"
+    root.mkdir()
+    shutil.copyfile(TABLES / "default_tiny" / "results.jsonl", root / "results.jsonl")
+    out = tmp_path / "out"
+    assert run_cli(TOOL.run, ["tables", "--root", str(root), "--out", str(out)]) == 0
+    capsys.readouterr()
+    same_files(out, TABLES / "default_tiny")
