@@ -253,9 +253,12 @@ def test_a_frame_goes_to_the_panel_with_its_time(viewer):
 
 
 def test_a_pixel_conditioned_airlight_renders_its_layers(tmp_path):
-    """nimbus-paper's airlight reads the input's pixels, which a new camera has not: the viewer gives it the
-    nearest training view's input, and at that view's own camera its P is the method's airlight layer."""
-    run = _train(tmp_path / "paper", "nimbus-paper", "--set", "m_init=2", "--set", "airlight_hidden=8")
+    """An airlight that reads the input's pixels (``airlight_input=pixel``, the paper's words), which a new camera
+    has not: the viewer gives it the nearest training view's input, and at that view's own camera its P is the
+    method's airlight layer."""
+    # view_density off: the viewer renders with the field alone, a training view's own factor would differ.
+    run = _train(tmp_path / "pixel", "nimbus-full", "--set", "m_init=2", "--set", "airlight_input=pixel",
+                 "--set", "airlight_hidden=8", "--set", "view_density=false")
     v = start_viewer(run, ViewerConfig(port=0, render_height=12))
     try:
         method = v.runner.method
