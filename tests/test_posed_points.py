@@ -7,6 +7,7 @@ pixels), and the whole ``tiny`` garden for the random fallback.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
 import logging
@@ -14,6 +15,7 @@ import logging
 import numpy as np
 import pytest
 
+from nimbus.cli_util import run_cli
 from nimbus.data.builtin import SIZES, get_scene, render_builtin
 from nimbus.data.builtin.raycast import RenderSettings, render_view
 from nimbus.data.io import load_scene, write_scene
@@ -22,6 +24,7 @@ from nimbus.data.triangulate import (MIN_TRIANGULATED_POINTS, TriangulationConfi
                                      triangulate_posed, triangulation_key)
 from nimbus.train.config import preset
 from nimbus.train.runner import Runner
+from weather_synth.commands import sfm as sfm_command
 
 N_VIEWS = 7  # 000 is the test view (LLFF rule), 001-006 are triangulated: about 9 degrees apart on the orbit
 
@@ -165,3 +168,48 @@ def test_points_less_tiny_garden_starts_about_the_subject(tmp_path, cache, caplo
     [line] = [r.getMessage() for r in caplog.records]
     assert "too small to triangulate" in line and "about the cameras' focus" in line
     assert runner.run()["init_points"]["random"]["kind"] == "focus"
+
+
+def _args(*argv):
+    parser = argparse.ArgumentParser()
+    sfm_command.add_arguments(parser)
+    return parser.parse_args(argv)
+
+
+def test_sfm_known_poses_command(garden_few, cache, tmp_path, capsys):
+    before = _snapshot(garden_few)
+    out = tmp_path / "with-points"
+    assert run_cli(lambda _: sfm_command.run(_args("--known-poses", str(garden_few), "--out", str(out)))) == 0
+    captured = capsys.readouterr()
+    written = load_scene(out)
+    n = len(written.points)
+    assert n > 0 and f"triangulated {n} points from 6 posed training views" in captured.out
+    assert f"fewer than {MIN_TRIANGULATED_POINTS} points" in captured.out  # and says what training will do
+    assert "cached" in captured.err and str(cache) in captured.err
+    assert written.test_names == {"000.png"} and written.names == load_scene(garden_few).names
+    assert _snapshot(garden_few) == before
+    # The trainer reads the same cache entry: the command warms it.
+    assert triangulate_posed(load_scene(garden_few).train_views).info["reused"]
+    # Without --out only the cache is written; the second time it is reused.
+    assert run_cli(lambda _: sfm_command.run(_args("--known-poses", str(garden_few)))) == 0
+    assert "reused the cached triangulation" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["PHOTOS", "--known-poses", "SCENE"], "not both"),
+    (["--known-poses", "SCENE", "--fov", "60"], "--fov"),
+    ([], "give PHOTOS_DIR and --out"),
+])
+def test_sfm_known_poses_usage_errors(argv, message, garden_few, capsys):
+    argv = [str(garden_few) if a == "SCENE" else a for a in argv]
+    assert run_cli(lambda _: sfm_command.run(_args(*argv))) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and message in err and err.count("\n") == 1
+
+
+def test_sfm_known_poses_refuses_images_too_small(tmp_path, cache, capsys):
+    tiny = render_builtin("garden", "tiny")
+    bare = write_scene(dataclasses.replace(tiny, points=np.zeros((0, 3)), colors=np.zeros((0, 3), np.uint8)),
+                       tmp_path / "tiny")
+    assert run_cli(lambda _: sfm_command.run(_args("--known-poses", str(bare)))) == 2
+    assert "too small to triangulate" in capsys.readouterr().err and not cache.exists()
