@@ -27,7 +27,7 @@ Cache
     The file is written atomically, so concurrent runs are safe; it is a few bytes per point.
 
 On the built-in garden scene at the ``small`` size (35 training views, 240 x 180 px) this gives
-about 2,500 points in about 10 s on two cores, at a median 0.5 % of the true depth (where the views
+about 2,500 points in 10 to 20 s on one thread, at a median 0.5 % of the true depth (where the views
 see them); at the ``tiny`` size (64 x 48 px) SIFT finds about 40 features per view and no pair has
 enough matches, so nothing is triangulated.
 """

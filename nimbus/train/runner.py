@@ -109,6 +109,7 @@ class Runner:
                  device: torch.device | None = None, checkpoints: bool = True,
                  on_log: Callable[[dict], None] | None = None) -> None:
         self.method_name = method_name
+        method_cls = get_method(method_name).load()  # an unknown method is refused before any triangulation
         self.frame = SceneFrame.of(scene)
         self.cfg = config
         self.seed = int(seed)
@@ -134,8 +135,7 @@ class Runner:
         self.resumed_mid_step = False
         #: Training steps in which the view depended on the model (a run with none learned nothing).
         self.visible_steps = 0
-        self.method = get_method(method_name).load()(self.scene, config, seed=self.seed, device=self.device,
-                                                     frame=self.frame)
+        self.method = method_cls(self.scene, config, seed=self.seed, device=self.device, frame=self.frame)
 
     @classmethod
     def resume(cls, out_dir: str | os.PathLike, *, progress: bool = True,
