@@ -8,7 +8,7 @@ from nimbus.render.gaussians import (
     Gaussians,
     init_from_points,
     init_from_scene,
-    init_random,
+    random_init_plan,
 )
 from nimbus.render.backends import BACKENDS
 from nimbus.render.rasterize import RasterConfig, means2d_grad, rasterize
@@ -20,7 +20,7 @@ __all__ = [
     "RasterConfig",
     "init_from_points",
     "init_from_scene",
-    "init_random",
+    "random_init_plan",
     "means2d_grad",
     "rasterize",
 ]

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from nimbus.data.camera_focus import RandomInitConfig, RandomInitPlan, plan_random_points, sample_random_points
 from nimbus.errors import NimbusError
 from nimbus.render.sh import MAX_SH_DEGREE, num_sh_bases, rgb_to_sh
 
@@ -119,10 +120,9 @@ class GaussianInitConfig:
     random_points : int
         Number of random points used when the scene has no sparse points. 3DGS uses
         100 000 for its synthetic scenes; 10 000 keeps CPU training affordable.
-    random_box_scale : float
-        Half-width of the random-point cube, in units of the scene extent, centred on the
-        mean camera centre.  0.3 matches 3DGS's Blender setup (cube of half-width 1.3 for
-        cameras at radius 4, extent 4.4).
+    random : RandomInitConfig
+        Where those random points go: about the training cameras' focus, or in their view
+        frusta for a forward-facing capture (:mod:`nimbus.data.camera_focus`).
     seed : int
         Seed of the random points and colours.
     """
@@ -132,7 +132,7 @@ class GaussianInitConfig:
     knn: int = 3
     min_scale: float = 1e-7
     random_points: int = 10_000
-    random_box_scale: float = 0.3
+    random: RandomInitConfig = RandomInitConfig()
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -144,8 +144,6 @@ class GaussianInitConfig:
             raise NimbusError(f"knn must be >= 1, got {self.knn}")
         if self.random_points < 1:
             raise NimbusError(f"random_points must be >= 1, got {self.random_points}")
-        if self.random_box_scale <= 0:
-            raise NimbusError(f"random_box_scale must be positive, got {self.random_box_scale}")
 
 
 # Bounds a [queries, candidates] distance block of the k-NN search (about 16 MB of float32).
@@ -291,24 +289,30 @@ def init_from_points(
     )
 
 
-def init_random(center, half_width: float, config: GaussianInitConfig = GaussianInitConfig()) -> Gaussians:
-    """``config.random_points`` Gaussians uniform in the cube ``center +- half_width`` with random colours."""
-    gen = torch.Generator().manual_seed(config.seed)
-    c = torch.as_tensor(np.asarray(center, dtype=np.float64)).reshape(1, 3)
-    pts = c + (torch.rand(config.random_points, 3, generator=gen, dtype=torch.float64) * 2 - 1) * half_width
-    rgb = torch.rand(config.random_points, 3, generator=gen)
-    return init_from_points(pts, rgb, config, fallback_scale=half_width)
-
-
 def init_from_scene(scene, config: GaussianInitConfig = GaussianInitConfig()) -> Gaussians:
     """Initial Gaussians for a :class:`nimbus.data.Scene`.
 
     Uses the scene's sparse points and colours when it has any; otherwise
-    ``config.random_points`` random points in a cube about the mean camera centre with
-    half-width ``config.random_box_scale * scene.extent``.
+    ``config.random_points`` random points with random colours placed from the training
+    cameras (:func:`random_init_plan`: about their focus, or in their view frusta when they
+    face forward).
     """
     if len(scene.points):
         return init_from_points(scene.points, scene.colors, config)
-    centers = scene.camera_centers
-    center = centers.mean(0) if len(centers) else np.zeros(3)
-    return init_random(center, config.random_box_scale * scene.extent, config)
+    cameras = random_init_cameras(scene)
+    plan = plan_random_points(cameras, config.random)
+    points, colors = sample_random_points(plan, cameras, config.random_points, config.seed)
+    return init_from_points(points, colors, config, fallback_scale=plan.radius or plan.near)
+
+
+def random_init_cameras(scene) -> list:
+    """The cameras that place random starting points: the training views' (every view's when none is)."""
+    views = scene.train_views or scene.views
+    if not views:
+        raise NimbusError("the scene has no views to place starting points from")
+    return [v.camera for v in views]
+
+
+def random_init_plan(scene, config: GaussianInitConfig = GaussianInitConfig()) -> RandomInitPlan:
+    """Where :func:`init_from_scene` puts random points for ``scene`` when it has none (for records)."""
+    return plan_random_points(random_init_cameras(scene), config.random)

@@ -41,6 +41,12 @@ class TrainConfig:
     capture has a tiny extent, so that rule deletes the background every densification
     step.  With True the threshold is ``prune_big_world * max(extent, distance from the
     mean camera centre)``: unchanged inside the camera region, an angular limit beyond.
+
+    Initialisation of a scene without sparse points (ours; :mod:`nimbus.train.init_points`): with
+    ``init_triangulate`` (default True) points triangulated from the posed training views with
+    pycolmap (cached in ``$NIMBUS_CACHE/triangulated``); where that finds too few,
+    ``init_random_points`` random points about the cameras' focus, or in their view frusta for a
+    forward-facing capture (:mod:`nimbus.data.camera_focus`).  A scene with points starts from them.
     """
 
     iterations: int = 30_000
@@ -76,6 +82,8 @@ class TrainConfig:
     # initialisation
     init_opacity: float = 0.1
     init_random_points: int = 10_000
+    # a scene without sparse points: triangulate its posed training views (cached) before random points
+    init_triangulate: bool = True
     # training images: shrunk by this integer factor (test views stay full size)
     train_downscale: int = 1
     # rendering

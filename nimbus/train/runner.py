@@ -14,7 +14,9 @@ A run directory holds::
     train_log.jsonl       one JSON line every ``log_interval`` iterations and for every event
     point_cloud.ply       the final Gaussians in the standard 3DGS PLY layout
     renders/test/NAME.png renders of the held-out views
-    results.json          test-view PSNR / SSIM, train time, peak memory, Gaussian count, and the method's
+    results.json          test-view PSNR / SSIM, train time, peak memory, Gaussian count, what training
+                          started from (``init_points``: the scene's sparse points, triangulated or random
+                          ones, :mod:`nimbus.train.init_points`), and the method's
                           :meth:`~nimbus.methods.base.Method.get_info`
 
 A view's validity mask (:func:`~nimbus.train.views.view_mask`) limits its training loss and its scores to
@@ -47,6 +49,7 @@ from nimbus.methods.registry import get_method
 from nimbus.render.gaussians import Gaussians
 from nimbus.train.checkpoint import CHECKPOINT, LAST_GOOD, read_checkpoint, write_checkpoint
 from nimbus.train.frame import SceneFrame
+from nimbus.train.init_points import choose_init_points
 from nimbus.train.ply import write_gaussian_ply
 from nimbus.train.run_folder import (config_from_record, config_record, load_scene_arg, read_run_config,
                                      scene_input_folder)
@@ -119,14 +122,21 @@ class Runner:
                  device: torch.device | None = None, checkpoints: bool = True,
                  on_log: Callable[[dict], None] | None = None) -> None:
         self.method_name = method_name
+        method_cls = get_method(method_name).load()  # an unknown method is refused before any triangulation
         self.frame = SceneFrame.of(scene)
-        self.scene = self.frame.scene(scene)
         self.cfg = config
-        self.out = Path(out_dir)
         self.seed = int(seed)
+        self.progress = progress
+        #: What training starts from (:func:`~nimbus.train.init_points.choose_init_points`): a points-less
+        #: scene gets triangulated points (cached) or random ones; recorded in results.json and the log.
+        init = choose_init_points(scene, config, self.seed,
+                                  log_step=(lambda line: print(f"init: {line}", file=sys.stderr, flush=True))
+                                  if progress else None)
+        self.init_points = init.record
+        self.scene = self.frame.scene(init.scene)
+        self.out = Path(out_dir)
         self.scene_path = scene_path
         self.scene_load_args = scene_load_args or {}
-        self.progress = progress
         self.device = device or default_device()
         self.checkpoints = checkpoints
         self.on_log = on_log
@@ -138,8 +148,7 @@ class Runner:
         self.resumed_mid_step = False
         #: Training steps in which the view depended on the model (a run with none learned nothing).
         self.visible_steps = 0
-        self.method = get_method(method_name).load()(self.scene, config, seed=self.seed, device=self.device,
-                                                     frame=self.frame)
+        self.method = method_cls(self.scene, config, seed=self.seed, device=self.device, frame=self.frame)
 
     @classmethod
     def resume(cls, out_dir: str | os.PathLike, *, progress: bool = True,
@@ -215,6 +224,7 @@ class Runner:
             self.event(kind, **info)
         if self.iteration == 0:
             self.write_config()
+            self.event("init_points", **self.init_points)
         c = self.cfg
         bar = tqdm(total=c.iterations, initial=self.iteration, disable=not self.progress, file=sys.stderr,
                    desc=f"{self.method_name}", dynamic_ncols=True, leave=True)
@@ -458,7 +468,8 @@ class Runner:
             # loss ignored masked pixels (per_view[name]["valid_fraction"] where a test view has one).
             "masked": ev["masked_views"] > 0, "eval_masked_views": ev["masked_views"],
             "train_masked_views": sum(view_mask(v) is not None for v in self.scene.train_views),
-            "per_view": ev["per_view"], "device": str(self.device), "rasterizer": self.rasterizer(),
+            "per_view": ev["per_view"], "init_points": self.init_points, "device": str(self.device),
+            "rasterizer": self.rasterizer(),
             "nimbus_version": nimbus.__version__, "versions": software_versions(), **self.method.get_info(),
         }
         atomic_write_json(self.out / "results.json", results)

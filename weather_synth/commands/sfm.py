@@ -1,4 +1,5 @@
-"""``nimbus-synth sfm``: recover cameras from a folder of photos and write a COLMAP scene."""
+"""``nimbus-synth sfm``: recover cameras from a folder of photos and write a COLMAP scene; or, with
+``--known-poses SCENE``, triangulate sparse points for a posed scene that has none (poses held fixed)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ import sys
 from nimbus.cli_util import MAX_SEED, seed_arg
 from nimbus.data.sfm import CAMERA_MODELS, MATCHERS, SfmConfig, list_photos, run_sfm
 
-HELP = "recover cameras and sparse points from photos (COLMAP SfM on the CPU) and write a scene folder"
+HELP = ("recover cameras and sparse points from photos (COLMAP SfM on the CPU) and write a scene folder; with "
+        "--known-poses SCENE, triangulate points for a posed scene that has none (transforms.json, empty points3D)")
 EXAMPLE = "nimbus-synth sfm my_photos/ --out scenes/garden --fov 65"
 
 
@@ -25,8 +27,15 @@ def _params_arg(text: str) -> tuple[float, ...]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     default = SfmConfig()
-    parser.add_argument("photos", metavar="PHOTOS_DIR", help="folder of photos (searched recursively; only read)")
-    parser.add_argument("--out", required=True, metavar="SCENE_DIR", help="scene folder to create")
+    parser.add_argument("photos", metavar="PHOTOS_DIR", nargs="?",
+                        help="folder of photos (searched recursively; only read)")
+    parser.add_argument("--out", metavar="SCENE_DIR",
+                        help="scene folder to create (with --known-poses: optional, the scene with the points, "
+                             "as a COLMAP scene)")
+    parser.add_argument("--known-poses", metavar="SCENE",
+                        help="instead of SfM: triangulate the training views of this posed scene (COLMAP or "
+                             "transforms.json; only read) with its poses and intrinsics fixed, into the user cache "
+                             "($NIMBUS_CACHE/triangulated) that nimbus-train reads for a scene without points")
     parser.add_argument("--overwrite", action="store_true", help="replace a non-empty SCENE_DIR")
     parser.add_argument("--matcher", choices=MATCHERS, default=default.matcher,
                         help="exhaustive: every pair of photos; sequential: neighbours in name order (video)")
@@ -58,7 +67,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from nimbus.errors import NimbusError
     from nimbus.utils.fs import check_output_dir
+
+    if args.known_poses is not None:
+        if args.photos is not None:
+            raise NimbusError(f"give either PHOTOS_DIR (SfM) or --known-poses SCENE (triangulation), not both "
+                              f"({args.photos!r} and {args.known_poses!r})")
+        return _run_known_poses(args)
+    if args.photos is None or args.out is None:
+        raise NimbusError("give PHOTOS_DIR and --out SCENE_DIR (or --known-poses SCENE); see nimbus-synth sfm --help")
 
     # The scene is written atomically beside SCENE_DIR; refuse before feature extraction when SCENE_DIR is
     # unusable or overlaps the photos (--overwrite would replace them).
@@ -76,4 +94,55 @@ def run(args: argparse.Namespace) -> int:
         print(f"unregistered ({len(unregistered)}): {', '.join(unregistered)}")
     print("\n".join(result.calibration.lines()))
     print(f"wrote {args.out} (the calibration report is in its manifest.json)")
+    return 0
+
+
+#: Options of the photo mode that mean nothing with --known-poses (the cameras are known).
+_SFM_ONLY = (("matcher", "--matcher"), ("camera_model", "--camera-model"), ("single_camera", "--single-camera"),
+             ("focal", "--focal"), ("fov", "--fov"), ("camera_params", "--camera-params"),
+             ("fix_intrinsics", "--fix-intrinsics"), ("no_exif", "--no-exif"))
+
+
+def _run_known_poses(args: argparse.Namespace) -> int:
+    """Triangulate the scene's training views into the cache (and write the scene with them to --out)."""
+    from nimbus.data.io import load_scene, write_scene
+    from nimbus.data.triangulate import (MIN_TRIANGULATED_POINTS, TriangulationConfig, triangulate_posed,
+                                         triangulation_skip_reason)
+    from nimbus.errors import NimbusError
+    from nimbus.utils.fs import check_output_dir
+
+    default = SfmConfig()
+    given = [flag for name, flag in _SFM_ONLY if getattr(args, name) not in (None, False, getattr(default, name, None))]
+    if given:
+        raise NimbusError(f"{', '.join(given)} describe(s) unknown cameras; --known-poses keeps the scene's cameras, "
+                          "so drop them")
+    if args.out is not None:
+        check_output_dir(args.out, args.overwrite, inputs=[args.known_poses])
+    scene = load_scene(args.known_poses)
+    views = scene.train_views or list(scene.views)
+    if len(scene.points):
+        print(f"note: {args.known_poses} already has {len(scene.points)} sparse points (nimbus-train uses them); "
+              "triangulating anyway", file=sys.stderr)
+    why = triangulation_skip_reason(views)
+    if why is not None:
+        raise NimbusError(f"{args.known_poses}: {why}")
+    config = TriangulationConfig(max_image_size=args.max_image_size, num_threads=args.threads, seed=args.seed)
+    tri = triangulate_posed(views, config, log=lambda msg: print(f"sfm: {msg}", file=sys.stderr, flush=True))
+    info = tri.info
+    done = "reused the cached triangulation" if info["reused"] else "cached"
+    print(f"{done} {info['cache']} (the scene folder is not written)", file=sys.stderr)
+    stats = (f"{info['verified_pairs']} of {info['pairs']} view pairs verified" +
+             (f", mean reprojection error {info['mean_reprojection_error_px']:.2f} px, mean track length "
+              f"{info['mean_track_length']:.2f} views" if len(tri.points) else ""))
+    print(f"triangulated {len(tri.points)} points from {len(views)} posed training views with the poses fixed "
+          f"({stats})")
+    if len(tri.points) < MIN_TRIANGULATED_POINTS:
+        print(f"WARNING: fewer than {MIN_TRIANGULATED_POINTS} points: nimbus-train will start from random points "
+              "about the cameras' focus instead; more overlap between views, or larger images, give more")
+    if args.out is not None:
+        import dataclasses
+
+        write_scene(dataclasses.replace(scene, points=tri.points, colors=tri.colors), args.out,
+                    overwrite=args.overwrite)
+        print(f"wrote {args.out} (COLMAP, with the triangulated points)")
     return 0

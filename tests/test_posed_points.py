@@ -1,0 +1,215 @@
+"""Posed captures without sparse points: triangulation with the poses fixed (cached), the fallback, the record.
+
+The test data are built-in scenes exported as transforms.json, with and without their points: a few
+neighbouring views of the garden orbit at the ``small`` size (SIFT needs more than ``tiny``'s 64 x 48
+pixels), and the whole ``tiny`` garden for the random fallback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+
+import numpy as np
+import pytest
+
+from nimbus.cli_util import run_cli
+from nimbus.data.builtin import SIZES, get_scene, render_builtin
+from nimbus.data.builtin.raycast import RenderSettings, render_view
+from nimbus.data.io import load_scene, write_scene
+from nimbus.data.scene import Scene, View, llff_test_names
+from nimbus.data.triangulate import (MIN_TRIANGULATED_POINTS, TriangulationConfig, pose_neighbour_pairs,
+                                     triangulate_posed, triangulation_key)
+from nimbus.train.config import preset
+from nimbus.train.runner import Runner
+from weather_synth.commands import sfm as sfm_command
+
+N_VIEWS = 7  # 000 is the test view (LLFF rule), 001-006 are triangulated: about 9 degrees apart on the orbit
+
+
+@pytest.fixture(scope="module")
+def garden_views():
+    """Seven neighbouring views of the garden orbit at the small size (2 x 2 samples per pixel), in memory."""
+    sc, size = get_scene("garden"), SIZES["small"]
+    world = sc.config.world(0)
+    cams = sc.config.cameras(40, size.width, size.height, 0)[:N_VIEWS]
+    views = []
+    for i, cam in enumerate(cams):
+        r = render_view(world, cam, RenderSettings(samples_per_axis=2))
+        views.append(View(f"{i:03d}.png", cam, image=r.image, depth=r.depth, sky=r.sky))
+    return Scene(tuple(views), frozenset(llff_test_names([v.name for v in views])))
+
+
+@pytest.fixture(scope="module")
+def garden_few(garden_views, tmp_path_factory):
+    """``garden_views`` exported as transforms.json without points (the images, depths and split are files)."""
+    return write_scene(garden_views, tmp_path_factory.mktemp("posed") / "garden", format="transforms")
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    """Every test gets its own user cache (never the real one)."""
+    folder = tmp_path / "user-cache"
+    monkeypatch.setenv("NIMBUS_CACHE", str(folder))
+    return folder
+
+
+def _snapshot(folder):
+    return {p.relative_to(folder): (p.stat().st_size, p.stat().st_mtime_ns) for p in folder.rglob("*")}
+
+
+def _depth_error(points, views):
+    """Per point, the smallest relative difference between its z-depth and the depth map, over the views it falls in."""
+    best = np.full(len(points), np.inf)
+    for v in views:
+        uv, z = v.camera.project(points)
+        u = np.floor(uv).astype(int)
+        ok = (z > 0) & (u[:, 0] >= 0) & (u[:, 0] < v.camera.width) & (u[:, 1] >= 0) & (u[:, 1] < v.camera.height)
+        true = v.load_depth()[u[ok, 1], u[ok, 0]]
+        err = np.full(len(points), np.inf)
+        err[ok] = np.abs(z[ok] - true) / true
+        best = np.minimum(best, err)
+    return best
+
+
+def test_triangulation_with_known_poses_lands_on_the_true_surfaces(garden_few, cache):
+    before = _snapshot(garden_few)
+    scene = load_scene(garden_few)
+    assert scene.source_format == "transforms" and len(scene.points) == 0
+    views = scene.train_views
+    tri = triangulate_posed(views)
+    assert len(tri.points) >= 200, tri.info  # about 420 from six 240 x 180 views
+    err = _depth_error(tri.points, views)
+    assert np.median(err) < 0.01 and np.mean(err < 0.02) > 0.75, np.percentile(err, [50, 75, 90])
+    assert (tri.errors < 4.0).all() and (tri.track_lengths >= 2).all()
+    assert tri.colors.dtype == np.uint8 and tri.colors.std() > 10  # coloured from the photos, not one grey
+    assert tri.info["views"] == 6 and tri.info["pairs"] == 15 and not tri.info["reused"]
+    # Cached by content in the user cache, and nothing written into the scene folder.
+    assert [p.name for p in (cache / "triangulated").iterdir()] == [f"{tri.info['key']}.npz"]
+    assert _snapshot(garden_few) == before
+    again = triangulate_posed(views)
+    assert again.info["reused"] and again.info["key"] == tri.info["key"]
+    np.testing.assert_array_equal(again.points, tri.points)
+    np.testing.assert_array_equal(again.colors, tri.colors)
+    # Other poses are another entry: a camera moved by 1 cm changes the key.
+    moved = [dataclasses.replace(views[0], camera=views[0].camera.with_pose(views[0].camera.R,
+                                                                            views[0].camera.t + [0.01, 0, 0])),
+             *views[1:]]
+    assert triangulation_key(moved, TriangulationConfig()) != tri.info["key"]
+    # The in-memory views (the same images as arrays) triangulate to the same points, under their own key.
+    memory = triangulate_posed([dataclasses.replace(v, image=v.load_image(), image_path=None) for v in views])
+    assert not memory.info["reused"]
+    np.testing.assert_allclose(memory.points, tri.points, atol=1e-9)
+
+
+def test_pose_pairs_pick_overlapping_neighbours():
+    """Beyond the exhaustive limit each view is matched with its nearest by pose: on an orbit, its neighbours."""
+    cams = get_scene("garden").config.cameras(40, 64, 48, 0)
+    pairs = pose_neighbour_pairs([View(f"{i:03d}.png", c) for i, c in enumerate(cams)], 4)
+    assert {min(j - i, 40 - (j - i)) for i, j in pairs} == {1, 2} and len(pairs) == 80
+
+
+def test_points_less_capture_trains_from_triangulated_points(garden_few, cache, caplog, tmp_path, monkeypatch):
+    import nimbus.train.init_points as init_points
+
+    scene = load_scene(garden_few)
+    config = dataclasses.replace(preset("tiny"), iterations=2)
+    with caplog.at_level(logging.WARNING, logger="nimbus.train.init_points"):
+        # Six small views give about 420 points: fewer than the threshold, so random points about the focus.
+        low = Runner("3dgs", scene, config, tmp_path / "low", progress=False)
+        monkeypatch.setattr(init_points, "MIN_TRIANGULATED_POINTS", 100)
+        runner = Runner("3dgs", scene, config, tmp_path / "run", progress=False)
+    rec = low.init_points
+    n = rec["triangulation"]["points"]
+    assert rec["source"] == "focus" and n < MIN_TRIANGULATED_POINTS and rec["points"] == config.init_random_points
+    assert len(low.scene.points) == 0  # random points are not measurements: not the scene's points
+    assert runner.init_points["source"] == "triangulated" and runner.init_points["points"] == n
+    assert runner.init_points["triangulation"]["reused"]  # the first runner made the cache entry
+    assert len(runner.scene.points) == n == runner.method.num_gaussians
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 2 and all(line.startswith("init: the scene has no sparse points") for line in lines)
+    assert f"triangulation found {n} points in 6 posed training views (< {MIN_TRIANGULATED_POINTS})" in lines[0]
+    assert "random points in a ball of radius" in lines[0]
+    assert f"triangulated {n} points from 6 posed training views" in lines[1] and str(cache) in lines[1]
+    results = runner.run()
+    assert results["init_points"] == runner.init_points
+    saved = json.loads((tmp_path / "run" / "results.json").read_text())
+    assert saved["init_points"]["source"] == "triangulated"
+    log = [json.loads(line) for line in (tmp_path / "run" / "train_log.jsonl").read_text().splitlines()]
+    assert log[0]["event"] == "init_points" and log[0]["source"] == "triangulated"
+    # Switched off: straight to random points, and no triangulation is attempted.
+    off = Runner("3dgs", scene, dataclasses.replace(config, init_triangulate=False), tmp_path / "off", progress=False)
+    assert off.init_points["triangulation"] == {"skipped": "triangulation is off (init_triangulate=false)"}
+
+
+def test_points_less_tiny_garden_starts_about_the_subject(tmp_path, cache, caplog):
+    full = render_builtin("garden", "tiny")
+    target = np.asarray(get_scene("garden").config.target)
+    with_points = load_scene(write_scene(full, tmp_path / "with", format="transforms"))
+    bare = dataclasses.replace(full, points=np.zeros((0, 3)), colors=np.zeros((0, 3), np.uint8))
+    without = load_scene(write_scene(bare, tmp_path / "without", format="transforms"))
+    assert len(with_points.points) == len(full.points) > 0 and len(without.points) == 0
+    config = dataclasses.replace(preset("tiny"), iterations=2)
+    with caplog.at_level(logging.WARNING, logger="nimbus.train.init_points"):
+        given = Runner("3dgs", with_points, config, tmp_path / "a", progress=False)
+        assert caplog.records == []  # a scene with points starts from them, silently
+        runner = Runner("3dgs", without, config, tmp_path / "b", progress=False)
+    assert given.init_points == {"source": "scene", "points": len(full.points)}
+    rec = runner.init_points
+    assert rec["source"] == "focus" and "too small to triangulate" in rec["triangulation"]["skipped"]
+    assert not cache.exists()  # nothing was triangulated, so nothing was cached
+    np.testing.assert_allclose(rec["random"]["center"], target, atol=0.1)
+    means = runner.gaussians().means.detach().double().numpy()  # world coordinates
+    centroid = without.camera_centers.mean(0)
+    assert np.linalg.norm(np.median(means, axis=0) - target) < 0.2
+    assert np.linalg.norm(np.median(means, axis=0) - centroid) > 1.0
+    [line] = [r.getMessage() for r in caplog.records]
+    assert "too small to triangulate" in line and "about the cameras' focus" in line
+    assert runner.run()["init_points"]["random"]["kind"] == "focus"
+
+
+def _args(*argv):
+    parser = argparse.ArgumentParser()
+    sfm_command.add_arguments(parser)
+    return parser.parse_args(argv)
+
+
+def test_sfm_known_poses_command(garden_few, cache, tmp_path, capsys):
+    before = _snapshot(garden_few)
+    out = tmp_path / "with-points"
+    assert run_cli(lambda _: sfm_command.run(_args("--known-poses", str(garden_few), "--out", str(out)))) == 0
+    captured = capsys.readouterr()
+    written = load_scene(out)
+    n = len(written.points)
+    assert n > 0 and f"triangulated {n} points from 6 posed training views" in captured.out
+    assert f"fewer than {MIN_TRIANGULATED_POINTS} points" in captured.out  # and says what training will do
+    assert "cached" in captured.err and str(cache) in captured.err
+    assert written.test_names == {"000.png"} and written.names == load_scene(garden_few).names
+    assert _snapshot(garden_few) == before
+    # The trainer reads the same cache entry: the command warms it.
+    assert triangulate_posed(load_scene(garden_few).train_views).info["reused"]
+    # Without --out only the cache is written; the second time it is reused.
+    assert run_cli(lambda _: sfm_command.run(_args("--known-poses", str(garden_few)))) == 0
+    assert "reused the cached triangulation" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["PHOTOS", "--known-poses", "SCENE"], "not both"),
+    (["--known-poses", "SCENE", "--fov", "60"], "--fov"),
+    ([], "give PHOTOS_DIR and --out"),
+])
+def test_sfm_known_poses_usage_errors(argv, message, garden_few, capsys):
+    argv = [str(garden_few) if a == "SCENE" else a for a in argv]
+    assert run_cli(lambda _: sfm_command.run(_args(*argv))) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and message in err and err.count("\n") == 1
+
+
+def test_sfm_known_poses_refuses_images_too_small(tmp_path, cache, capsys):
+    tiny = render_builtin("garden", "tiny")
+    bare = write_scene(dataclasses.replace(tiny, points=np.zeros((0, 3)), colors=np.zeros((0, 3), np.uint8)),
+                       tmp_path / "tiny")
+    assert run_cli(lambda _: sfm_command.run(_args("--known-poses", str(bare)))) == 2
+    assert "too small to triangulate" in capsys.readouterr().err and not cache.exists()
