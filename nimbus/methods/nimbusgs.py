@@ -6,6 +6,10 @@ loss is ``(1 - lambda_r) L1(I_in, I_con) + lambda_r (1 - SSIM) + L_DCP(I_hat) + 
 with the Gaussians' scale learning rate lowered to ``lr_scales_init``.  At the end of
 stage 1 every training view's particulate layer is extracted, ``R = ReLU(I_in - I_con)``.
 
+With CSM, both stages also add the dehazed-view prior (ours, ``lambda_dehaze``): the same photometric loss
+between I_hat and the view's single-image dark-channel dehaze (weight ``lambda_dehaze``, times ``prior_stage2``
+in stage 2), which keeps the clean render from keeping the veil the degraded-image loss cannot see.
+
 Stage 2 (M_init+1..iterations, joint optimisation): ``I_deg = I_con + R``, loss
 ``(1 - lambda_r) L1(I_in, I_deg) + lambda_r (1 - SSIM) + L_TV``, R re-extracted every
 ``refresh_interval`` iterations, and GGS rescales each Gaussian's gradients and hands the
