@@ -215,14 +215,16 @@ class NimbusConfig(TrainConfig):
         estimate that is unbiased on average pins the level, while the 3D model and the medium
         keep what the views agree on.  Chosen on the validation scenes (scene seed 1, tiny, the
         12 hazy ``onerestore`` cells): mean PSNR 14.2 dB without, 17.7 with ``1`` (restore-3dgs:
-        16.3); an L1-only prior gave 17.3, a prior in stage 1 only 14.4 (the veil comes back in
-        stage 2), a prior on T from the same dehaze 14.4 (docs/methods/paper.md).
+        16.3); an L1-only prior gave 17.3, weights 2 and 0.5 17.7 and 17.3, a prior on T from the
+        same dehaze 14.7, a prior in stage 1 only 14.4 on garden H (the veil comes back in stage 2).
+        Records and commands: ``tables/validation_tiny``.
     prior_stage2 : float
         The prior's weight in stage 2, as a fraction of ``lambda_dehaze`` (1: the whole run; 0:
         stage 1 only).
     prior_particles : bool
         Remove bright particles (:func:`nimbus.restore.classical.remove_particles`) from a view
         before dehazing it for the prior (a rain streak divided by a low transmission is amplified).
+        Not measured on the validation cells yet; off.
 
     Particulate layer (PLM)
     -----------------------
