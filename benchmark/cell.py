@@ -413,9 +413,8 @@ def scoring_lpips(options: CellOptions):
 def warm_up(options: CellOptions) -> None:
     """Load now what every cell would load on first use: for a process about to train many cells.
 
-    torch with the cells' threads, the optimiser machinery (an optimiser's first use imports
-    torch._dynamo, ~3 s) and what the cells' device renders with: on the CPU the compiled
-    kernels, on CUDA gsplat's extension (when gsplat is installed) and not the CPU kernels, which
+    torch with the cells' threads, the default methods' modules and what the cells' device renders
+    with: on the CPU the compiled kernels, on CUDA gsplat's extension (when gsplat is installed) and not the CPU kernels, which
     a CUDA cell never calls.  No cell's training time then includes them, and every cell's peak
     memory is measured over the same loaded baseline.  Best effort: what fails here fails again in
     the cell, which records why.
@@ -425,9 +424,11 @@ def warm_up(options: CellOptions) -> None:
     if options.threads:
         torch.set_num_threads(int(options.threads))
     try:
-        torch.optim.Adam([torch.zeros(1, requires_grad=True)])
         from nimbus.methods.base import default_device
+        from nimbus.methods.registry import get_method
 
+        for name in ("3dgs", "nimbus", "restore-3dgs"):
+            get_method(name).load()
         if (torch.device(options.device) if options.device else default_device()).type == "cuda":
             from nimbus.render.backends import gsplat
 

@@ -64,6 +64,7 @@ from nimbus.methods.gs3d import GaussianSplatting
 from nimbus.nimbusgs.airlight import dark_channel_hard, estimate_airlight
 from nimbus.restore import pixel_sizes
 from nimbus.train.config import PRESETS as GS_PRESETS
+from nimbus.train.adam import Adam
 from nimbus.train.config import TrainConfig, lookup_preset, rescale_step
 
 #: Smallest alpha the expected depth ``depth / alpha`` divides by.  ``depth <= alpha * z_max``, so
@@ -264,7 +265,7 @@ class HomogeneousMedium:
                "sigma_bs": _inverse_softplus(rgb(init["sigma_bs"])),
                "backscatter": torch.logit(rgb(init["backscatter"]))}
         self.raw = {k: raw[k].requires_grad_(True) for k in MEDIUM_PARAMS}
-        self.optimizer = torch.optim.Adam(
+        self.optimizer = Adam(
             [{"params": [self.raw[k]], "lr": config.lr_medium, "name": k} for k in MEDIUM_PARAMS])
 
     def values(self, frozen: bool = False) -> dict[str, Tensor]:

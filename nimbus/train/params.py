@@ -5,20 +5,22 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from nimbus.train.adam import Adam
+
 #: About how many bytes one Gaussian takes while training: 59 float32 parameters at SH degree 3, their gradient
 #: and two Adam moments (944), rounded up.
 BYTES_PER_GAUSSIAN = 1024
 
 
-def adam(groups: list[dict], eps: float) -> torch.optim.Adam:
-    """Adam over parameter ``groups`` (each with its own ``lr``), fused when every parameter is on the CPU.
+def adam(groups: list[dict], eps: float) -> Adam:
+    """Adam over parameter ``groups`` (each with its own ``lr``), updated by torch's fused kernel.
 
-    On the CPU torch's fused Adam makes one pass per tensor instead of about seven (~6x faster with
-    200k Gaussians); its update equals the default's up to float rounding (1 ulp).  Elsewhere torch
-    picks its default implementation.
+    On the CPU the fused kernel makes one pass per tensor instead of about seven (~6x faster with
+    200k Gaussians); its update equals the unfused one up to float rounding (1 ulp).
+    :class:`nimbus.train.adam.Adam` calls it without ``torch.optim``, whose first use imports
+    ``torch._dynamo`` (~1.5 s per process).
     """
-    fused = all(p.device.type == "cpu" for g in groups for p in g["params"])
-    return torch.optim.Adam(groups, lr=0.0, eps=eps, fused=fused or None)
+    return Adam(groups, lr=0.0, eps=eps)
 
 
 class GaussianParams:
