@@ -1,7 +1,7 @@
 """Local worker processes for the benchmark grid: each one runs many cells, one at a time.
 
 A cell of the default (tiny) benchmark trains for a few seconds, while a new Python process
-needs as long again to import torch, torch._dynamo (the optimiser's first use imports it) and
+needs as long again to import torch and
 the compiled kernels, and scoring needs as long to load the LPIPS network.
 :class:`CellWorkers` therefore starts ``jobs`` processes once and sends each of them cell after
 cell: a worker trains the cell and renders its test views (:func:`benchmark.cell.train_cell`),
