@@ -1,12 +1,14 @@
 """The committed table folders that hold their records regenerate from them byte for byte.
 
 ``tables/small_fast_6methods`` (issue 17's grid), ``tables/cuda_check_small_fast`` (its CUDA check) and
-``tables/default_tiny`` (the README main job) keep their ``results.jsonl``; the commands their READMEs give must write exactly the committed files, so a change
+``tables/default_tiny`` (the README main job) keep their ``results.jsonl``, and so does ``tables/validation_tiny``, whose
+README's summaries are checked against its tool; the commands their READMEs give must write exactly the committed files, so a change
 to a table layout that moves a committed figure or sentence shows here, not in a reader's diff.
 """
 
 from __future__ import annotations
 
+import re
 import shutil
 from pathlib import Path
 
@@ -61,3 +63,23 @@ def test_default_tiny_tables_regenerate(tmp_path, capsys):
     assert run_cli(TOOL.run, ["tables", "--root", str(root), "--out", str(out)]) == 0
     capsys.readouterr()
     same_files(out, TABLES / "default_tiny")
+
+
+def test_validation_tiny_summaries_regenerate():
+    """Every ``tools.validation_cells --summary`` block in tables/validation_tiny/README.md is followed by its output."""
+    from tools.validation_cells import summary
+
+    readme = (TABLES / "validation_tiny" / "README.md").read_text()
+    fences = list(re.finditer(r"```[a-z]*\n(.*?)```\n", readme, re.S))
+    checked = 0
+    for fence, following in zip(fences, [*fences[1:], None]):
+        after = readme[fence.end():following.start() if following else len(readme)]
+        lines = fence.group(1).splitlines()
+        if not all(line.startswith("python -m tools.validation_cells --summary") for line in lines):
+            continue  # a recipe, not a summary and its output
+        for line in lines:
+            args = line.split()
+            records = Path(__file__).resolve().parents[1] / args[args.index("--summary") + 1]
+            assert summary(records, args[args.index("--tags") + 1].split(",")) in after, line
+            checked += 1
+    assert checked >= 4
