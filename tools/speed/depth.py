@@ -15,8 +15,8 @@ within 5 % of it), ``median rel. error`` against the exact map, and seconds.
 
 Run (the table in the README and the issue's closing note)::
 
-    python -m benchmark.speed.depth --scenes garden,street,tabletop --sizes tiny --iterations 300,600,1000
-    python -m benchmark.speed.depth --scenes garden,street,tabletop --sizes small --iterations 600
+    python -m tools.speed.depth --scenes garden,street,tabletop --sizes tiny --iterations 300,600,1000
+    python -m tools.speed.depth --scenes garden,street,tabletop --sizes small --iterations 600
 
 Timings depend on the machine and its load (the development machine is shared); the fit runs on
 CUDA when torch sees a GPU.

@@ -2,9 +2,9 @@
 
 Usage::
 
-    python -m benchmark.speed.training [--scene builtin:garden] [--sizes tiny small]
-                                       [--methods 3dgs nimbus-full nimbus] [--preset tiny]
-                                       [--iterations N] [--warmup 10] [--threads 1,2]
+    python -m tools.speed.training [--scene builtin:garden] [--sizes tiny small]
+                                   [--methods 3dgs nimbus-full nimbus] [--preset tiny]
+                                   [--iterations N] [--warmup 10] [--threads 1,2]
 
 For each size (``builtin:NAME:SIZE``; a scene folder is timed once, at its own size), each
 method and each thread count, the method is built as ``nimbus-train`` builds it (its
