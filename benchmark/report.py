@@ -1,4 +1,4 @@
-"""Plain-text pieces of the benchmark's reports (stability, hostile, tradeoff): CSV of row dicts, short messages."""
+"""Plain-text pieces of the benchmark's reports (stability, tradeoff): CSV of row dicts, short messages."""
 
 from __future__ import annotations
 

@@ -585,7 +585,7 @@ def test_report_overwrite_replaces_its_own_earlier_report(report_store, tmp_path
 
 
 @pytest.mark.parametrize("command", [["stability", "--cases", "no_haze", "--methods", "3dgs", "--iterations", "2",
-                                      "--lpips", "none"], ["hostile", "--cases", "seed_huge"]])
+                                      "--lpips", "none"]])
 def test_case_reports_overwrite_only_their_own_output(command, tmp_path, capsys):
     """Checked before any case runs: a foreign folder is refused, and so is one inside a results store."""
     (tmp_path / "mine").mkdir()

@@ -1,6 +1,6 @@
-"""The command-line frame shared by the case reports (``nimbus-bench stability`` and ``hostile``); not a verb.
+"""The command-line frame of a case report (``nimbus-bench stability``); not a verb.
 
-Both run a list of named cases in scratch folders and write a report folder: the same
+A case report runs a list of named cases in scratch folders and write a report folder: the same
 ``--out`` / ``--cases`` / ``--work`` / ``--overwrite`` / ``--list`` flags, the same way of
 listing the cases, of running them in a kept or temporary work folder, and of printing
 the report and its files.
