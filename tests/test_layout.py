@@ -125,6 +125,17 @@ def test_the_wheel_ships_the_three_packages_and_not_tools():
     assert not (ROOT / "benchmark" / "gpu_check.py").exists()
 
 
+def test_the_report_templates_ship_as_package_data():
+    import fnmatch
+
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11+
+    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["benchmark"]
+    files = [p.relative_to(ROOT / "benchmark").as_posix() for p in (ROOT / "benchmark" / "templates").rglob("*")
+             if p.is_file()]
+    assert "templates/report.html" in files and "templates/table.html" in files
+    assert [f for f in files if not any(fnmatch.fnmatch(f, pat) for pat in declared)] == []
+
+
 def test_the_wheel_check_can_fail(tmp_path):
     for pkg in ("nimbus", "tools", "tools/speed"):
         (tmp_path / pkg).mkdir(parents=True)

@@ -1,4 +1,4 @@
-"""The one writer: a :class:`~benchmark.tables.model.Table` as LaTeX, Markdown or long-format CSV.
+"""The one writer: a :class:`~benchmark.tables.model.Table` as LaTeX, Markdown, long-format CSV, text or HTML.
 
 LaTeX
     booktabs (``\\toprule`` / ``\\midrule`` / ``\\bottomrule``), scaled to the text width; the
@@ -9,6 +9,12 @@ Markdown
     GitHub tables: best **bold**, second best _italic_; the notes under the table.
 CSV
     Long format (:class:`~benchmark.tables.model.LongFormat`): values unrounded, marks as words.
+Text
+    Aligned columns for a terminal (what ``nimbus-bench run`` prints): the block name first, no marks.
+HTML
+    A sortable ``<table>`` (the report's, :mod:`benchmark.html_report`) from the Jinja2 template
+    ``benchmark/templates/table.html``: the block name first, each value's unrounded sort key in
+    ``data-v``, best / second best as the cell's class.
 
 :func:`write_tables` writes a set of tables into a folder, file by file and atomically.
 """
@@ -21,6 +27,7 @@ from pathlib import Path
 from typing import NamedTuple, Sequence
 
 from benchmark.tables.model import Combined, Table, finite
+from benchmark.templating import render_template
 from nimbus.errors import NimbusError
 
 #: The paper's colour macros (``nimbusgs.tex`` preamble); ``\providecommand`` keeps a document's own.
@@ -31,6 +38,8 @@ MARK_WORDS = {1: "best", 2: "second"}
 MARKDOWN_ALIGN = {"right": "---:", "left": ":---", "center": ":---:", "none": "---"}
 MISSING_TEXT = "–"
 MISSING_LATEX = "--"
+MISSING_PLAIN = "n/a"
+HTML_MARKS = {1: "best", 2: "second"}
 _LATEX_SPECIAL = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",
                   "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}", "^": r"\^{}"}
 
@@ -139,6 +148,45 @@ def to_markdown(t: Table) -> str:
     if t.comment:
         lines.append(f"{t.comment[:1].upper()}{t.comment[1:]}.")
     return "\n".join(lines) + "\n"
+
+
+def _block_first(t: Table, missing: str) -> tuple[list[str], list[tuple[list[str], list[int | None]]]]:
+    """Heads (block, label, columns) and per row its texts and marks, for the one-group text and HTML forms."""
+    if len(t.groups) != 1:
+        raise ValueError(f"table {t.key}: text and HTML take one column group, not {len(t.groups)}")
+    group = t.groups[0]
+    heads = [t.lead[1] if len(t.lead) > 1 else "", t.lead[0], *(c.text for c in t.columns)]
+    rows = []
+    for bi, block in enumerate(t.blocks):
+        marks = {c.key: t.marks(group, c.key, bi) for c in t.columns}
+        for ri, row in enumerate(block.rows):
+            texts = [block.name, row.label] + [c.format(row.values.get((group, c.key)), missing) for c in t.columns]
+            rows.append((texts, [None, None] + [marks[c.key][ri] for c in t.columns], row))
+    return heads, rows
+
+
+def to_text(t: Table) -> str:
+    """The table as aligned plain text (one column group): labels left, values right, the notes below."""
+    heads, rows = _block_first(t, MISSING_PLAIN)
+    keep = [i for i in range(len(heads)) if i > 0 or any(texts[0] for texts, _, _ in rows)]
+    lines = [[heads[i] for i in keep]] + [[texts[i] for i in keep] for texts, _, _ in rows]
+    widths = [max(len(line[j]) for line in lines) for j in range(len(keep))]
+    left = [keep[j] < 2 or t.columns[keep[j] - 2].align == "left" for j in range(len(keep))]
+    out = ["  ".join(s.ljust(w) if lft else s.rjust(w) for s, w, lft in zip(line, widths, left)).rstrip()
+           for line in lines]
+    return "\n".join(out + [f"{n}." for n in t.notes]) + "\n"
+
+
+def to_html(t: Table) -> str:
+    """The table as a sortable HTML ``<table>`` (one column group) and its notes, autoescaped."""
+    heads, rows = _block_first(t, MISSING_TEXT)
+    group = t.groups[0]
+    cells = [[{"text": text, "sort": None, "mark": None} for text in texts[:2]]
+             + [{"text": text, "mark": HTML_MARKS.get(mark),
+                 "sort": v if finite(v := row.values.get((group, c.key))) else ""}
+                for text, mark, c in zip(texts[2:], marks[2:], t.columns)]
+             for texts, marks, row in rows]
+    return render_template("table.html", heads=heads, rows=cells, notes=[f"{n}." for n in t.notes])
 
 
 def to_csv(tables: Sequence[Table]) -> str:
