@@ -44,7 +44,6 @@ to a few MB.  The page is built in a temporary folder and renamed into place
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import os
@@ -61,7 +60,7 @@ from benchmark.cell import CEILING
 from benchmark.tables import ceiling
 from benchmark.tables.results import ordered
 from benchmark.tables.summary import summary_table
-from benchmark.tables.writer import to_html
+from benchmark.tables.writer import from_csv, to_html
 from benchmark.templating import render_template
 from nimbus.errors import NimbusError
 
@@ -207,22 +206,6 @@ def evenly_spaced(items: Sequence, n: int) -> list:
     if n == 1:
         return [items[0]]
     return [items[round(i * (len(items) - 1) / (n - 1))] for i in range(n)]
-
-
-def csv_table_html(path: Path) -> str:
-    """A CSV file another command wrote as a sortable HTML table (numbers right-aligned by their sort value)."""
-    with open(path, newline="", encoding="utf-8") as f:
-        rows = list(csv.reader(f))
-
-    def cell(v: str) -> dict:
-        try:
-            num = float(v)
-        except ValueError:
-            return {"text": v, "sort": None}
-        return {"text": v, "sort": num if math.isfinite(num) else ""}
-
-    return render_template("csv_table.html", name=path.name, heads=rows[0] if rows else [],
-                           rows=[[cell(v) for v in r] for r in rows[1:]])
 
 
 # --- test views ------------------------------------------------------------------------------
@@ -446,9 +429,9 @@ def extra_sections(root: Path, images: ImageWriter, options: ReportOptions) -> t
     trade, stab = [], []
     for i, folder in enumerate(found_outputs(root, options.tradeoff, TRADEOFF_FILES, "--tradeoff")):
         plot = images.copy(folder / "tradeoff.png", f"tradeoff-{i}.png") if (folder / "tradeoff.png").is_file() else None
-        trade.append({"folder": folder, "plot": plot, "table": csv_table_html(folder / "tradeoff.csv"), "details": []})
+        trade.append({"folder": folder, "plot": plot, "table": to_html(from_csv(folder / "tradeoff.csv")), "details": []})
     for folder in found_outputs(root, options.stability, STABILITY_FILES, "--stability"):
-        stab.append({"folder": folder, "plot": None, "table": csv_table_html(folder / "stability.csv"),
+        stab.append({"folder": folder, "plot": None, "table": to_html(from_csv(folder / "stability.csv")),
                      "details": [(images.full(folder / n, n), n) for n in STABILITY_FILES[1:] if (folder / n).is_file()]})
     return tuple(render_template("extras.html", items=items) if items else "" for items in (trade, stab))
 

@@ -288,3 +288,19 @@ def test_the_templates_escape_what_they_show():
     assert to_text(t).splitlines() == ["Weather  Method                     v<w",
                                        "H        <script>alert(1)</script>  2.0",
                                        "H        b&c                        1.0", "a <i>note</i>."]
+
+
+def test_another_commands_csv_is_a_table_of_the_writer(tmp_path):
+    from benchmark.tables.writer import from_csv, to_html
+
+    path = tmp_path / "tradeoff.csv"
+    path.write_text("knob,value,psnr,note\niterations,6,12.5,<b>\niterations,12,inf,\n")
+    t = from_csv(path)
+    assert [c.text for c in t.columns] == ["value", "psnr", "note"] and t.lead == ("knob",)
+    html = to_html(t)
+    assert "<th>knob</th><th>value</th><th>psnr</th><th>note</th>" in html  # no block column: no block has a name
+    assert '<td data-v="12.5">12.5</td><td>&lt;b&gt;</td>' in html  # numbers sort by value, text by what it says
+    assert '<td data-v="">inf</td>' in html  # not a finite number: sorted last
+    empty = tmp_path / "stability.csv"
+    empty.write_text("")
+    assert "stability.csv is empty." in to_html(from_csv(empty))

@@ -23,10 +23,11 @@ from __future__ import annotations
 
 import csv
 import io
+import math
 from pathlib import Path
 from typing import NamedTuple, Sequence
 
-from benchmark.tables.model import Combined, Table, finite
+from benchmark.tables.model import Block, Column, Combined, Row, Table, finite
 from benchmark.templating import render_template
 from nimbus.errors import NimbusError
 
@@ -177,16 +178,42 @@ def to_text(t: Table) -> str:
     return "\n".join(out + [f"{n}." for n in t.notes]) + "\n"
 
 
+def _sort_key(v) -> float | str | None:
+    """What the page sorts a value by (``data-v``): a number (also one written as text), ``""`` for a missing
+    value (sorted last), None for other text (sorted by what it says)."""
+    if isinstance(v, str):
+        try:
+            num = float(v)
+        except ValueError:
+            return None
+        return num if math.isfinite(num) else ""
+    return v if finite(v) else ""
+
+
 def to_html(t: Table) -> str:
-    """The table as a sortable HTML ``<table>`` (one column group) and its notes, autoescaped."""
+    """The table as a sortable HTML ``<table>`` (one column group) and its notes, autoescaped.  The block column
+    is left out when no block has a name."""
     heads, rows = _block_first(t, MISSING_TEXT)
     group = t.groups[0]
-    cells = [[{"text": text, "sort": None, "mark": None} for text in texts[:2]]
-             + [{"text": text, "mark": HTML_MARKS.get(mark),
-                 "sort": v if finite(v := row.values.get((group, c.key))) else ""}
+    first = 0 if any(b.name for b in t.blocks) else 1
+    cells = [[{"text": text, "sort": None, "mark": None} for text in texts[first:2]]
+             + [{"text": text, "mark": HTML_MARKS.get(mark), "sort": _sort_key(row.values.get((group, c.key)))}
                 for text, mark, c in zip(texts[2:], marks[2:], t.columns)]
              for texts, marks, row in rows]
-    return render_template("table.html", heads=heads, rows=cells, notes=[f"{n}." for n in t.notes])
+    return render_template("table.html", heads=heads[first:], rows=cells, notes=[f"{n}." for n in t.notes])
+
+
+def from_csv(path: Path, key: str = "") -> Table:
+    """A CSV file with a header line as a table of text (another command's output, shown by the report): the first
+    field labels a row, every other is a column."""
+    with open(path, newline="", encoding="utf-8") as f:
+        lines = list(csv.reader(f))
+    head, body = (lines[0], lines[1:]) if lines else ([""], [])
+    columns = tuple(Column(f"c{i}", h, latex_escape(h), align="left") for i, h in enumerate(head[1:]))
+    rows = [Row(line[0] if line else "", {("", f"c{i}"): v for i, v in enumerate(line[1:])}) for line in body]
+    return Table(key or Path(path).stem, key or Path(path).stem, Path(path).name, columns, [""],
+                 [Block(rows, ranked=False)], lead=(head[0],), group_heads=False,
+                 notes=[] if body else [f"{Path(path).name} is empty"])
 
 
 def to_csv(tables: Sequence[Table]) -> str:
