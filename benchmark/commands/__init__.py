@@ -2,5 +2,5 @@
 
 The library code they call lives beside them in :mod:`benchmark` (:mod:`~benchmark.score`,
 :mod:`~benchmark.reference`, :mod:`~benchmark.tradeoff`, :mod:`~benchmark.stability`,
-:mod:`~benchmark.grid`, ...); :mod:`.case_report` is the stability report's frame, not a verb.
+:mod:`~benchmark.grid`, ...).
 """
