@@ -1,2 +1,4 @@
-"""The benchmark harness (``nimbus-bench``: metrics, scoring of any method's renders, LPIPS weight set-up)
-and speed / quality measurement scripts (run with ``python -m benchmark.speed.<name>``)."""
+"""The benchmark (``nimbus-bench``): cells, grid and store, scoring of any method's renders, tables and reports.
+
+Research and developer scripts (threshold derivation, speed measurements, the GPU check) are not part of it: they
+live in the checkout's top-level ``tools/`` (``python -m tools.NAME``), which is not installed."""

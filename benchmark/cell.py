@@ -329,7 +329,7 @@ def train_method(method_name: str, scene, config, out_dir: Path, *, seed: int, s
     """Train a registered method on a scene into the run folder ``out_dir``.
 
     The grid's and the stability report's one call into the Runner: every cell, sweep point and
-    stability run goes through here (the speed scripts and gpu_check build their Runners themselves).
+    stability run goes through here (the scripts under tools/ build their Runners themselves).
 
     Parameters
     ----------

@@ -10,7 +10,7 @@ from nimbus.cli_util import SubcommandTool
 # Subcommand name -> module defining it (order is the order in --help).
 COMMANDS = {name: f"benchmark.commands.{name.replace('-', '_')}"
             for name in ("setup-weights", "setup-kernels", "score", "run", "tables", "compare", "reference", "tradeoff",
-                         "stability", "hostile", "report", "export", "decompose")}
+                         "stability", "report", "export", "decompose")}
 
 TOOL = SubcommandTool(
     "nimbus-bench",

@@ -32,6 +32,10 @@ Sections:
 * **Provenance**: the commands that reproduce the cells (rebuilt from the records: the store keeps
   no command lines), seeds, protocols, software versions, and every cell's record in brief.
 
+The page is rendered from the Jinja2 templates of ``benchmark/templates/`` (``report.html`` and one template per
+section, with autoescaping on; :mod:`benchmark.templating`); this module gathers what they show.  The summary is
+the one :func:`benchmark.tables.summary.summary_table`, written by the table writer's HTML form.
+
 Full-size images are links into the store (relative to ``OUT``, so the page and the store move
 together), or copies with ``copy_full``; the thumbnails keep a 3-scene x 7-setting x 6-method store
 to a few MB.  The page is built in a temporary folder and renamed into place
@@ -40,8 +44,6 @@ to a few MB.  The page is built in a temporary folder and renamed into place
 
 from __future__ import annotations
 
-import csv
-import html
 import json
 import math
 import os
@@ -52,14 +54,14 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterable, Sequence
-from urllib.parse import quote
-
 import numpy as np
 
 from benchmark.cell import CEILING
 from benchmark.tables import ceiling
-from benchmark.tables.model import Block, Column, Row, Table, finite
-from benchmark.tables.results import METRIC_COLUMNS, finished, labelled, ordered, protocols
+from benchmark.tables.results import ordered
+from benchmark.tables.summary import summary_table
+from benchmark.tables.writer import from_csv, to_html
+from benchmark.templating import render_template
 from nimbus.errors import NimbusError
 
 if TYPE_CHECKING:
@@ -85,13 +87,6 @@ DECOMPOSITION_VIEWS = 3
 DECOMPOSITION_PANELS = ("input I_in", "clean render", "transmission T", "airlight P", "residual R")
 TRADEOFF_FILES = ("tradeoff.csv", "tradeoff.png", "tradeoff.md")
 STABILITY_FILES = ("stability.csv", "stability.md", "stability.json")
-#: Columns of the summary besides PSNR / SSIM / LPIPS.
-TIME_COLUMN = Column("train_time_s", "Train s↓", "Train s", 1, higher_is_better=False)
-COUNT_COLUMNS = (Column("cells", "Cells", "Cells"), Column("errors", "Errors", "Errors"))
-SUMMARY_COLUMNS = (*METRIC_COLUMNS, TIME_COLUMN, *COUNT_COLUMNS)
-#: The summary's gap to the clean ceiling, shown when the store has one.
-GAP_COLUMN = Column("d_psnr_ceiling", "ΔPSNR vs clean", r"$\Delta$PSNR vs clean", 2)
-MARK_CLASS = {1: "best", 2: "second"}
 
 
 @dataclass(frozen=True)
@@ -119,16 +114,6 @@ class ReportOptions:
     tradeoff: Path | None = None
     stability: Path | None = None
     method_order: tuple[str, ...] = ()
-
-
-def e(text) -> str:
-    """HTML-escaped text."""
-    return html.escape(str(text), quote=True)
-
-
-def url(path: str | os.PathLike) -> str:
-    """A relative path as an escaped URL (``+``, spaces and ``%`` in file names survive)."""
-    return e(quote(Path(path).as_posix()))
 
 
 # --- the store -------------------------------------------------------------------------------
@@ -196,17 +181,16 @@ class ImageWriter:
 
 
 def figure(images: ImageWriter, name: str, img: np.ndarray, full: Path, caption: str,
-           diff_against: np.ndarray | None = None) -> str:
-    """One captioned, clickable thumbnail (with its difference thumbnail when ``diff_against`` is given)."""
-    src = images.thumb(name, img)
-    attrs = f' data-thumb="{url(src)}"'
+           diff_against: np.ndarray | None = None) -> dict:
+    """One captioned, clickable thumbnail (with its difference thumbnail when ``diff_against`` is given), for the
+    ``figure`` macro of ``templates/macros.html``."""
+    fig = {"src": images.thumb(name, img), "diff": None, "caption": caption, "small": img.shape[1] < images.width // 2,
+           "missing": None}
     if diff_against is not None:
         diff = np.abs(img - diff_against).mean(axis=2) * DIFF_GAIN
-        attrs += f' data-diff="{url(images.thumb(name + "_diff", diff, DIFF_JPEG_QUALITY))}"'
-    small = " small" if img.shape[1] < images.width // 2 else ""
-    return (f'<figure><a class="zoom" href="{url(images.full(full, name))}"><img class="thumb{small}" '
-            f'src="{url(src)}"{attrs} alt="{e(caption)}" loading="lazy"></a><figcaption>{e(caption)}</figcaption>'
-            "</figure>")
+        fig["diff"] = images.thumb(name + "_diff", diff, DIFF_JPEG_QUALITY)
+    fig["href"] = images.full(full, name)
+    return fig
 
 
 def psnr_caption(value: float | None) -> str:
@@ -222,87 +206,6 @@ def evenly_spaced(items: Sequence, n: int) -> list:
     if n == 1:
         return [items[0]]
     return [items[round(i * (len(items) - 1) / (n - 1))] for i in range(n)]
-
-
-# --- summary ---------------------------------------------------------------------------------
-def summary_table(df, method_order: Sequence[str] = ()) -> Table:
-    """Per weather setting (a block) x method (a row): means over the finished cells, counts, marks.
-
-    Raises NimbusError for a store without a finished cell or mixing protocols.
-    """
-    from weather_synth.settings import ALL_SETTING_NAMES
-
-    ok = finished(df)
-    ssim_protocol, lp = protocols(ok)
-    ceilings = ceiling.split(ok)[1]
-    every = labelled(df.copy())
-    blocks = []
-    for w in ordered(ok["weather"], (CEILING, *ALL_SETTING_NAMES)):
-        sub = every[every["weather"] == w]
-        rows = []
-        for m in ordered(sub["method_label"], method_order):
-            g = sub[sub["method_label"] == m]
-            good = g[g["status"] == "ok"]
-            row = Row(ceiling.label(m) if w == CEILING else m, fields={"method": m})
-            for col in (*METRIC_COLUMNS, TIME_COLUMN):
-                v = good[col.key].astype(float)
-                row.values[("", col.key)] = None if len(v) == 0 or v.isna().any() else float(v.mean())
-            row.values[("", "cells")] = float(len(g))
-            row.values[("", "errors")] = float(len(g) - len(good))
-            if len(ceilings) and w != CEILING:
-                row.values[("", GAP_COLUMN.key)] = ceiling.mean_gap(good, ceilings)
-            rows.append(row)
-        blocks.append(Block(rows, name=w, fields={"weather": w}))
-    notes = [f"Means over the finished cells of each setting (every scene and seed) against the clean "
-             f"test views; SSIM protocol: {ssim_protocol}; LPIPS: {lp}; Train s: the training loop's "
-             "wall-clock seconds. Best and second best marked per setting."]
-    if len(ceilings):
-        notes.append(f"{CEILING} = the clean ceiling, {ceiling.LABEL}: 3dgs trained on the clean training views; "
-                     f"{GAP_COLUMN.text} = the mean over a row's finished cells of the cell's PSNR minus its scene's "
-                     "ceiling (same size and preset), dB.")
-    columns = (*SUMMARY_COLUMNS, GAP_COLUMN) if len(ceilings) else SUMMARY_COLUMNS
-    return Table("summary", "summary", "Summary", columns, [""], blocks, lead=("Method", "Weather"), notes=notes)
-
-
-def table_html(table: Table) -> str:
-    """A sortable HTML table of a one-group :class:`~benchmark.tables.model.Table`, blocks as a first column."""
-    group = table.groups[0]
-    heads = [table.lead[1] if len(table.lead) > 1 else "", table.lead[0], *(c.text for c in table.columns)]
-    out = ['<table class="sortable"><thead><tr>' + "".join(f"<th>{e(h)}</th>" for h in heads)
-           + "</tr></thead><tbody>"]
-    for bi, block in enumerate(table.blocks):
-        marks = {c.key: table.marks(group, c.key, bi) for c in table.columns}
-        for ri, row in enumerate(block.rows):
-            cells = [f"<td>{e(block.name)}</td>", f"<td>{e(row.label)}</td>"]
-            for c in table.columns:
-                v = row.values.get((group, c.key))
-                cls = MARK_CLASS.get(marks[c.key][ri])
-                cells.append(f'<td data-v="{v if finite(v) else ""}"{f" class={cls!r}" if cls else ""}>'
-                             f"{e(c.format(v, '–'))}</td>")
-            out.append("<tr>" + "".join(cells) + "</tr>")
-    out.append("</tbody></table>")
-    out += [f'<p class="note">{e(n)}</p>' for n in table.notes]
-    return "\n".join(out)
-
-
-def csv_table_html(path: Path) -> str:
-    """A CSV file as a sortable HTML table (numbers right-aligned by their sort value)."""
-    with open(path, newline="", encoding="utf-8") as f:
-        rows = list(csv.reader(f))
-    if not rows:
-        return f'<p class="note">{e(path.name)} is empty.</p>'
-    body = []
-    for r in rows[1:]:
-        cells = []
-        for v in r:
-            try:
-                num = float(v)
-                cells.append(f'<td data-v="{num if math.isfinite(num) else ""}" class="num">{e(v)}</td>')
-            except ValueError:
-                cells.append(f"<td>{e(v)}</td>")
-        body.append("<tr>" + "".join(cells) + "</tr>")
-    return ('<div class="wide"><table class="sortable"><thead><tr>' + "".join(f"<th>{e(h)}</th>" for h in rows[0])
-            + "</tr></thead><tbody>\n" + "\n".join(body) + "</tbody></table></div>")
 
 
 # --- test views ------------------------------------------------------------------------------
@@ -328,10 +231,11 @@ def view_grids(root: Path, recs: list[dict], images: ImageWriter, options: Repor
     from benchmark.store import record_data_name
     from weather_synth.settings import ALL_SETTING_NAMES, parse_family_setting
 
-    out = []
+    scenes = []
     ok = [r for r in recs if r.get("status") == "ok" and r.get("run_dir")]
     for scene in ordered(record_data_name(r) for r in ok):
-        out.append(f'<h3 id="views-{e(scene)}">{e(scene)}</h3>')
+        grids = []
+        scenes.append({"name": scene, "grids": grids})
         here = [r for r in ok if record_data_name(r) == scene]
         # The clean ceiling has no weather of its own: its renders stand beside every setting's, before the clean view.
         ceilings = [r for r in here if r["weather"] == CEILING]
@@ -356,27 +260,21 @@ def view_grids(root: Path, recs: list[dict], images: ImageWriter, options: Repor
                     continue
                 clean = read_image(in_store(root, clean_path, f"clean view {name} of {scene}/{w}"))
                 key = f"views/{scene}/{w}/{Path(name).with_suffix('').as_posix()}"
-                figs = [f"<th>{e(name)}</th>"]
+                figs = []
                 in_path = inputs.find(name)
                 if in_path is not None:
                     img = read_image(in_store(root, in_path, f"degraded view {name} of {scene}/{w}"))
-                    figs.append("<td>" + figure(images, f"{key}_input", img, in_path,
-                                                psnr_caption(float(peak_signal_noise_ratio(img, clean))), clean)
-                                + "</td>")
+                    figs.append(figure(images, f"{key}_input", img, in_path,
+                                       psnr_caption(float(peak_signal_noise_ratio(img, clean))), clean))
                 else:
-                    figs.append('<td class="missing">no input</td>')
+                    figs.append({"missing": "no input", "inline": False})
                 for r, renders in zip(cells, render_folders):
-                    figs.append("<td>" + render_figure(root, r, renders, name, clean, images, f"{key}_{r['cell_id']}")
-                                + "</td>")
-                figs.append("<td>" + figure(images, f"{key}_clean", clean, clean_path, "clean (reference)")
-                            + "</td>")
-                rows.append("<tr>" + "".join(figs) + "</tr>")
-            heads = ["view", "degraded input", *labels, "clean"]
-            out.append(f"<h4>{e(scene)} · {e(family.description)} ({e(w)})</h4>")
-            out.append('<div class="wide"><table class="views"><thead><tr>'
-                       + "".join(f"<th>{e(h)}</th>" for h in heads) + "</tr></thead><tbody>\n"
-                       + "\n".join(rows) + "</tbody></table></div>")
-    return "\n".join(out)
+                    figs.append(render_figure(root, r, renders, name, clean, images, f"{key}_{r['cell_id']}"))
+                figs.append(figure(images, f"{key}_clean", clean, clean_path, "clean (reference)"))
+                rows.append({"name": name, "figures": figs})
+            grids.append({"description": family.description, "weather": w, "rows": rows,
+                          "heads": ["view", "degraded input", *labels, "clean"]})
+    return render_template("views.html", scenes=scenes, diff_gain=f"{DIFF_GAIN:g}")
 
 
 def render_folder(root: Path, rec: dict) -> tuple[Path, ImageIndex | None]:
@@ -392,7 +290,7 @@ def render_folder(root: Path, rec: dict) -> tuple[Path, ImageIndex | None]:
 
 
 def render_figure(root: Path, rec: dict, renders: tuple[Path, ImageIndex | None], name: str, clean: np.ndarray,
-                  images: ImageWriter, key: str) -> str:
+                  images: ImageWriter, key: str) -> dict:
     """One cell's render of view ``name`` (from :func:`render_folder`'s ``renders``) with its PSNR (the record's,
     else computed), or why it is missing."""
     from nimbus.data.images import read_image
@@ -401,7 +299,7 @@ def render_figure(root: Path, rec: dict, renders: tuple[Path, ImageIndex | None]
     folder, index = renders
     path = index.find(name) if index is not None else None
     if path is None:
-        return f'<span class="missing">no render ({e(folder.relative_to(root))} missing)</span>'
+        return {"missing": f"no render ({folder.relative_to(root)} missing)", "inline": True}
     img = read_image(in_store(root, path, f"render {name} of cell {rec['cell_id']!r}"))
     psnr = next((v.get("psnr") for v in rec.get("per_view") or [] if v.get("name") == name), None)
     if psnr is None and img.shape == clean.shape:
@@ -432,11 +330,11 @@ def read_json(path: Path) -> dict:
 
 
 # --- NimbusGS ----------------------------------------------------------------------------------
-def decision_html(nimbus: dict) -> str:
-    """The component decision and its evidence as a two-column table (nested records flattened)."""
+def decision_pairs(nimbus: dict) -> list[tuple[str, str]]:
+    """The component decision and its evidence as (name, value) pairs (nested records flattened)."""
     keys = ("mode", "components", "haze_evidence", "particle_evidence", "estimated_time_saved_s",
             "initial_transmission", "beta_max", "beta_mean")
-    rows = []
+    pairs = []
 
     def add(name: str, v) -> None:
         if isinstance(v, dict):
@@ -447,12 +345,12 @@ def decision_html(nimbus: dict) -> str:
             v = f"{v:.4g}"
         elif isinstance(v, list):
             v = ", ".join(map(str, v)) or "none"
-        rows.append(f"<tr><th>{e(name)}</th><td>{e(v)}</td></tr>")
+        pairs.append((name, v))
 
     for k in keys:
         if k in nimbus:
             add(k, nimbus[k])
-    return '<table class="kv">' + "".join(rows) + "</table>"
+    return pairs
 
 
 def nimbus_sections(root: Path, recs: list[dict], images: ImageWriter) -> str:
@@ -460,7 +358,7 @@ def nimbus_sections(root: Path, recs: list[dict], images: ImageWriter) -> str:
     from benchmark.store import record_run_dir
     from nimbus.data.images import read_image
 
-    out = []
+    cells = []
     for r in recs:
         if r.get("status") != "ok" or not r.get("run_dir"):
             continue
@@ -469,25 +367,17 @@ def nimbus_sections(root: Path, recs: list[dict], images: ImageWriter) -> str:
         strips = sorted((run / "decomposition").glob("*.png")) if (run / "decomposition").is_dir() else []
         if not isinstance(nimbus, dict) and not strips:
             continue
-        out.append(f'<h3>{e(r["cell_id"])}</h3><div class="nimbus">')
-        if isinstance(nimbus, dict):
-            out.append(f"<div><h4>Component decision ({e(nimbus.get('mode', '?'))})</h4>{decision_html(nimbus)}"
-                       "</div>")
-        if strips:
-            rows = []
-            for strip_path in evenly_spaced(strips, DECOMPOSITION_VIEWS):
-                strip = read_image(in_store(root, strip_path, f"decomposition of cell {r['cell_id']!r}"))
-                w = strip.shape[1] // len(DECOMPOSITION_PANELS)
-                figs = [f"<th>{e(strip_path.name)}</th>"]
-                for i, panel in enumerate(DECOMPOSITION_PANELS):
-                    key = f"nimbus/{r['cell_id']}/{strip_path.stem}_{i}"
-                    figs.append("<td>" + figure(images, key, strip[:, i * w:(i + 1) * w], strip_path, panel)
-                                + "</td>")
-                rows.append("<tr>" + "".join(figs) + "</tr>")
-            out.append('<div class="wide"><h4>Decomposition of training views (full size: the whole strip)</h4>'
-                       '<table class="views"><tbody>' + "\n".join(rows) + "</tbody></table></div>")
-        out.append("</div>")
-    return "\n".join(out)
+        rows = []
+        for strip_path in evenly_spaced(strips, DECOMPOSITION_VIEWS):
+            strip = read_image(in_store(root, strip_path, f"decomposition of cell {r['cell_id']!r}"))
+            w = strip.shape[1] // len(DECOMPOSITION_PANELS)
+            rows.append({"name": strip_path.name, "figures": [
+                figure(images, f"nimbus/{r['cell_id']}/{strip_path.stem}_{i}", strip[:, i * w:(i + 1) * w],
+                       strip_path, panel) for i, panel in enumerate(DECOMPOSITION_PANELS)]})
+        has = isinstance(nimbus, dict)
+        cells.append({"cell_id": r["cell_id"], "mode": nimbus.get("mode", "?") if has else None,
+                      "decision": decision_pairs(nimbus) if has else None, "strips": rows})
+    return render_template("nimbus.html", cells=cells) if cells else ""
 
 
 # --- decomposition against the ground truth ------------------------------------------------------
@@ -508,7 +398,7 @@ def decomposition_sections(root: Path, recs: list[dict], images: ImageWriter) ->
     from benchmark.tables.decompose import NOTES, decompose_table
     from weather_synth.settings import parse_family_setting
 
-    out, missing = [], []
+    cells, missing = [], []
     for r in recs:
         if r.get("status") != "ok" or not r.get("run_dir"):
             continue
@@ -516,11 +406,10 @@ def decomposition_sections(root: Path, recs: list[dict], images: ImageWriter) ->
         record = read_json(run / DEFAULT_DIR / RECORD)
         if isinstance(record.get("bands"), dict):
             md = run / DEFAULT_DIR / MARKDOWN
-            name = f"decompose-{r['cell_id']}"
-            link = f' · <a href="{url(images.full(md, name))}">{e(MARKDOWN)}</a>' if md.is_file() else ""
-            out.append(f'<h3>{e(r["cell_id"])}</h3><p class="note">{e(record.get("views", "?"))} training views at '
-                       f'iteration {e(record.get("iteration", "?"))}{link}</p><div class="wide">'
-                       + table_html(replace(decompose_table(record), notes=[])) + "</div>")
+            cells.append({"cell_id": r["cell_id"], "views": record.get("views", "?"),
+                          "iteration": record.get("iteration", "?"), "link_name": MARKDOWN,
+                          "link": images.full(md, f"decompose-{r['cell_id']}") if md.is_file() else None,
+                          "table": to_html(replace(decompose_table(record), notes=[]))})
             continue
         try:
             hazy = parse_family_setting(r.get("weather", "")).setting.haze
@@ -528,17 +417,10 @@ def decomposition_sections(root: Path, recs: list[dict], images: ImageWriter) ->
             hazy = False
         if hazy and models_medium(read_json(run / "results.json")):
             missing.append(r)
-    if not out and not missing:
+    if not cells and not missing:
         return ""
-    text = []
-    if out:
-        text.append('<p class="note">' + " ".join(f"{e(n)}." for n in NOTES) + "</p>")
-    text += out
-    if missing:
-        text.append('<p class="note">Not checked yet (run the command, then this report again): '
-                    + "; ".join(f"<code>nimbus-bench decompose {e(shlex.quote(str(root / r['run_dir'])))}</code>"
-                                for r in missing) + "</p>")
-    return "\n".join(text)
+    return render_template("decompose.html", notes=NOTES, cells=cells, missing=[
+        f"nimbus-bench decompose {shlex.quote(str(root / r['run_dir']))}" for r in missing])
 
 
 # --- trade-off, stability ------------------------------------------------------------------------
@@ -546,19 +428,12 @@ def extra_sections(root: Path, images: ImageWriter, options: ReportOptions) -> t
     """The trade-off and stability sections' HTML (empty strings when there is nothing to show)."""
     trade, stab = [], []
     for i, folder in enumerate(found_outputs(root, options.tradeoff, TRADEOFF_FILES, "--tradeoff")):
-        trade.append(f"<h3>{e(folder)}</h3>")
-        if (folder / "tradeoff.png").is_file():
-            src = images.copy(folder / "tradeoff.png", f"tradeoff-{i}.png")
-            trade.append(f'<a class="zoom" href="{url(src)}"><img class="plot" src="{url(src)}" '
-                         'alt="speed / accuracy trade-off (Pareto fronts)"></a>')
-        trade.append(csv_table_html(folder / "tradeoff.csv"))
+        plot = images.copy(folder / "tradeoff.png", f"tradeoff-{i}.png") if (folder / "tradeoff.png").is_file() else None
+        trade.append({"folder": folder, "plot": plot, "table": to_html(from_csv(folder / "tradeoff.csv")), "details": []})
     for folder in found_outputs(root, options.stability, STABILITY_FILES, "--stability"):
-        stab.append(f"<h3>{e(folder)}</h3>" + csv_table_html(folder / "stability.csv"))
-        more = [n for n in STABILITY_FILES[1:] if (folder / n).is_file()]
-        if more:
-            stab.append('<p class="note">Details: ' + ", ".join(
-                f'<a href="{url(images.full(folder / n, n))}">{e(n)}</a>' for n in more) + "</p>")
-    return "\n".join(trade), "\n".join(stab)
+        stab.append({"folder": folder, "plot": None, "table": to_html(from_csv(folder / "stability.csv")),
+                     "details": [(images.full(folder / n, n), n) for n in STABILITY_FILES[1:] if (folder / n).is_file()]})
+    return tuple(render_template("extras.html", items=items) if items else "" for items in (trade, stab))
 
 
 # --- provenance ---------------------------------------------------------------------------------
@@ -617,92 +492,31 @@ def provenance_html(root: Path, recs: list[dict], command: str | None) -> str:
     from benchmark.store import record_data_name
     from nimbus.versions import software_versions
 
-    out = ["<h3>Commands</h3>"]
-    if command:
-        out.append(f"<p>This page: <code>{e(command)}</code> (generated "
-                   f"{e(datetime.now(timezone.utc).isoformat(timespec='seconds'))}, nimbus "
-                   f"{e(software_versions().get('nimbus', '?'))}).</p>")
-    out.append("<p>The cells, rebuilt from their records (the store keeps no command lines; rerunning these on an "
-               "empty root recomputes every cell):</p><pre>"
-               + e("\n".join(reproduce_commands(recs, str(root)))) + "</pre>")
-    seeds = sorted({int(r["seed"]) for r in recs})
     synth = []
     for scene in ordered(record_data_name(r) for r in recs):
         index = read_json(root / "data" / scene / "index.json")
         synth.append(f"{scene}: protocol {index.get('protocol', SYNTH_PROTOCOL)}, seed {index.get('seed', SYNTH_SEED)}")
-    out.append(f"<h3>Seeds</h3><ul><li>training: {e(', '.join(map(str, seeds)))}</li>"
-               f"<li>built-in scenes rendered with seed {SCENE_SEED}</li>"
-               f"<li>weather synthesis: {e('; '.join(synth))}</li></ul>")
     versions: dict[str, dict[str, int]] = {}
     for r in recs:
         for k, v in (r.get("versions") or {}).items():
             versions.setdefault(k, {}).setdefault(str(v), 0)
             versions[k][str(v)] += 1
-    out.append('<h3>Versions</h3><table class="kv">' + "".join(
-        f"<tr><th>{e(k)}</th><td>{e(', '.join(v if len(c) == 1 else f'{v} ({n} cells)' for v, n in c.items()))}"
-        "</td></tr>" for k, c in sorted(versions.items())) + "</table>")
-    heads = ("cell", "status", "device", "host", "finished", "wall s", "config", "input", "error")
-    rows = []
-    for r in recs:
-        vals = (r["cell_id"], r.get("status"), r.get("device") or "", r.get("host") or "", r.get("finished_at") or "",
-                r.get("wall_time_s") or "", (r.get("config_hash") or "")[:12], (r.get("input_sha256") or "")[:12],
-                shorten(r.get("error") or "", 160))
-        rows.append("<tr>" + "".join(f"<td>{e(v)}</td>" for v in vals) + "</tr>")
-    out.append("<h3>Cells</h3><p class=\"note\">config / input: the first 12 hex digits of the sha256 of the "
-               "config and of the degraded dataset's manifest (the clean scene's, for the clean ceiling).</p>"
-               "<div class=\"wide\"><table class=\"sortable\">"
-               "<thead><tr>" + "".join(f"<th>{e(h)}</th>" for h in heads) + "</tr></thead><tbody>"
-               + "\n".join(rows) + "</tbody></table></div>")
-    return "\n".join(out)
+    cells = [(r["cell_id"], r.get("status"), r.get("device") or "", r.get("host") or "", r.get("finished_at") or "",
+              r.get("wall_time_s") or "", (r.get("config_hash") or "")[:12], (r.get("input_sha256") or "")[:12],
+              shorten(r.get("error") or "", 160)) for r in recs]
+    return render_template(
+        "provenance.html", command=command, generated=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        version=software_versions().get("nimbus", "?"), commands=reproduce_commands(recs, str(root)),
+        seeds=sorted({int(r["seed"]) for r in recs}), scene_seed=SCENE_SEED, synthesis=synth,
+        versions=[(k, ", ".join(v if len(c) == 1 else f"{v} ({n} cells)" for v, n in c.items()))
+                  for k, c in sorted(versions.items())],
+        cell_heads=("cell", "status", "device", "host", "finished", "wall s", "config", "input", "error"), cells=cells)
 
 
 # --- the page --------------------------------------------------------------------------------------
-STYLE = """
-body{font:14px/1.4 system-ui,sans-serif;margin:0 auto;max-width:1400px;padding:0 16px 48px;color:#222}
-h1{margin:16px 0 4px}h2{border-bottom:2px solid #ccc;margin-top:32px}h4{margin:16px 0 6px}
-nav a{margin-right:12px}code,pre{background:#f4f4f4;font-size:12px}pre{padding:8px;overflow-x:auto}
-table{border-collapse:collapse;margin:6px 0}th,td{padding:3px 8px;border-bottom:1px solid #e4e4e4;text-align:left}
-td[data-v],td.num{text-align:right;font-variant-numeric:tabular-nums}
-table.sortable th{cursor:pointer;background:#f0f0f0;user-select:none}
-table.sortable th[data-dir=asc]::after{content:" ▲"}table.sortable th[data-dir=desc]::after{content:" ▼"}
-td.best{font-weight:bold;background:#fbd0d0}td.second{text-decoration:underline;background:#fde6c8}
-table.views td,table.views th{vertical-align:top;border:none}
-figure{margin:0;width:160px}figure img{width:100%;display:block;border:1px solid #ccc}
-img.small{image-rendering:pixelated}figcaption{font-size:12px;color:#444;text-align:center}
-img.plot{max-width:100%;border:1px solid #ccc}.wide{overflow-x:auto}.note{color:#555;font-size:12px}
-.missing{color:#a00;font-size:12px}.nimbus{display:flex;flex-wrap:wrap;gap:24px;align-items:flex-start}
-table.kv th{font-weight:normal;color:#555}.toggle{position:sticky;top:0;background:#fff;padding:6px 0;z-index:1}
-#lightbox{position:fixed;inset:0;background:rgba(0,0,0,.85);display:none;align-items:center;
-justify-content:center;z-index:9;cursor:zoom-out}#lightbox img{max-width:95vw;max-height:95vh;
-image-rendering:pixelated;background:#fff}
-"""
-
-SCRIPT = """
-document.querySelectorAll('table.sortable').forEach(function(t){
-  t.querySelectorAll('th').forEach(function(th,i){th.addEventListener('click',function(){
-    var dir=th.dataset.dir==='asc'?'desc':'asc';
-    t.querySelectorAll('th').forEach(function(h){delete h.dataset.dir});th.dataset.dir=dir;
-    var body=t.tBodies[0],rows=Array.prototype.slice.call(body.rows);
-    function key(r){var c=r.cells[i];if(!c)return '';return c.dataset.v!==undefined?c.dataset.v:c.textContent}
-    rows.sort(function(a,b){var x=key(a),y=key(b);if(x===''||y==='')return x===y?0:(x===''?1:-1);
-      var nx=parseFloat(x),ny=parseFloat(y),s=(!isNaN(nx)&&!isNaN(ny))?nx-ny:String(x).localeCompare(String(y));
-      return dir==='asc'?s:-s});
-    rows.forEach(function(r){body.appendChild(r)});});});});
-var diff=document.getElementById('diff');
-if(diff){diff.addEventListener('change',function(){document.querySelectorAll('img[data-diff]').forEach(
-  function(im){im.src=diff.checked?im.dataset.diff:im.dataset.thumb})})}
-var box=document.getElementById('lightbox'),big=box.querySelector('img');
-document.querySelectorAll('a.zoom').forEach(function(a){a.addEventListener('click',function(ev){
-  ev.preventDefault();var im=a.querySelector('img');var showDiff=diff&&diff.checked&&im.dataset.diff;
-  big.onerror=function(){big.onerror=null;big.src=im.src};big.src=showDiff?im.dataset.diff:a.getAttribute('href');
-  box.style.display='flex'})});
-box.addEventListener('click',function(){box.style.display='none'});
-document.addEventListener('keydown',function(ev){if(ev.key==='Escape')box.style.display='none'});
-"""
-
-
 def build_page(root: Path, tmp: Path, out: Path, options: ReportOptions, command: str | None) -> str:
-    """The page's HTML; thumbnails are written under ``tmp`` (the final folder will be ``out``)."""
+    """The page's HTML (``templates/report.html``); thumbnails are written under ``tmp`` (the final folder will
+    be ``out``)."""
     from benchmark.store import ResultsStore, load_results
 
     with warnings.catch_warnings():  # a truncated last line is the store's business, not the report's
@@ -711,12 +525,8 @@ def build_page(root: Path, tmp: Path, out: Path, options: ReportOptions, command
         recs = list(ResultsStore(root).latest().values())
     table = summary_table(df, options.method_order)  # raises for an empty store before any image is made
     images = ImageWriter(tmp, out, options.thumb_width, options.copy_full)
-    n_ok = sum(r.get("status") == "ok" for r in recs)
-    sections = [("summary", "Summary", table_html(table)),
-                ("views", "Test views",
-                 '<p class="toggle"><label><input type="checkbox" id="diff"> show the difference to the clean view '
-                 f"(|image − clean|, mean over the channels, × {DIFF_GAIN:g}, grey)</label> · click an image to enlarge it (full size)</p>"
-                 + view_grids(root, recs, images, options))]
+    sections = [("summary", "Summary", to_html(table)),
+                ("views", "Test views", view_grids(root, recs, images, options))]
     nimbus = nimbus_sections(root, recs, images)
     if nimbus:
         sections.append(("nimbus", "NimbusGS: component decision and decomposition", nimbus))
@@ -729,13 +539,8 @@ def build_page(root: Path, tmp: Path, out: Path, options: ReportOptions, command
     if stab:
         sections.append(("stability", "Stability", stab))
     sections.append(("provenance", "Provenance", provenance_html(root, recs, command)))
-    nav = " ".join(f'<a href="#{k}">{e(title)}</a>' for k, title, _ in sections)
-    body = "\n".join(f'<section id="{k}"><h2>{e(title)}</h2>\n{text}\n</section>' for k, title, text in sections)
-    return (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
-            f"<title>Nimbus benchmark report: {e(root)}</title><style>{STYLE}</style></head><body>\n"
-            f"<h1>Nimbus benchmark report</h1><p>Results store <code>{e(root)}</code>: {len(recs)} cell(s), "
-            f"{n_ok} finished, {len(recs) - n_ok} failed.</p><nav>{nav}</nav>\n{body}\n"
-            f'<div id="lightbox"><img alt="enlarged image"></div><script>{SCRIPT}</script></body></html>\n')
+    return render_template("report.html", root=root, n_cells=len(recs),
+                           n_ok=sum(r.get("status") == "ok" for r in recs), sections=sections)
 
 
 def build_report(root: str | os.PathLike, out: str | os.PathLike, options: ReportOptions = ReportOptions(),

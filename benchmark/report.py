@@ -1,20 +1,6 @@
-"""Plain-text pieces of the benchmark's reports (stability, hostile, tradeoff): CSV of row dicts, short messages."""
+"""Plain-text pieces of the benchmark's reports (stability, the HTML report): short messages."""
 
 from __future__ import annotations
-
-import csv
-import io
-from typing import Any, Callable, Iterable, Sequence
-
-
-def rows_csv(rows: Iterable[dict], columns: Sequence[str], cell: Callable[[dict, str], Any]) -> str:
-    """CSV text: a header of ``columns``, then ``cell(row, column)`` for each row (``\\n`` line ends)."""
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(columns)
-    for r in rows:
-        w.writerow([cell(r, c) for c in columns])
-    return buf.getvalue()
 
 
 def shorten(text: str, n: int) -> str:

@@ -45,7 +45,9 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 
 from benchmark.cell import SYNTH_PROTOCOL, SYNTH_SEED
-from benchmark.report import rows_csv, shorten
+from benchmark.report import shorten
+from benchmark.tables import writer
+from benchmark.tables.model import Block, Column, LongFormat, Row, Table
 from nimbus.cli_util import pick_by_name
 from nimbus.errors import NimbusError
 
@@ -530,14 +532,44 @@ def _cell(row: dict, col: str) -> str:
     return "" if v is None else str(v)
 
 
+#: What stability.md shows of a row besides its case (the row label): text as the CSV has it, the message
+#: shortened and NaN / inf with where it was seen.
+MD_COLUMNS = tuple(Column(f"shown_{c}", c, c, align="left" if c not in ("psnr", "ssim", "lpips", "seconds") else "right")
+                   for c in COLUMNS if c not in ("case", "nan_where"))
+CSV_FORMAT = LongFormat("stability.csv", "the stability report, one line per (case, method)", COLUMNS)
+CASE_COLUMNS = tuple(Column(k, text, text, align="left") for k, text in
+                     (("input", "input"), ("expected", "expected"), ("description", "what is extreme")))
+
+
+def stability_table(rows: Sequence[dict], notes: Sequence[str] = ()) -> Table:
+    """The runs as a :class:`~benchmark.tables.model.Table` (one row per case x method); its CSV lines are the
+    rows' fields as :data:`COLUMNS` (figures at the precision :func:`_cell` gives them)."""
+    out = []
+    for r in rows:
+        shown = {c.key: _cell(r, c.text) for c in MD_COLUMNS}
+        shown["shown_message"] = shorten(shown["shown_message"], MD_MESSAGE_CHARS)
+        if r["nan_seen"]:
+            shown["shown_nan_seen"] = f"yes ({_cell(r, 'nan_where')})"
+        out.append(Row(r["case"], {("", k): v for k, v in shown.items()}, fields={c: _cell(r, c) for c in COLUMNS}))
+    return Table("stability", "stability", "Runs", MD_COLUMNS, [""], [Block(out, ranked=False)], lead=("case",),
+                 notes=list(notes), group_heads=False, csv=CSV_FORMAT)
+
+
+def cases_table(cases: Sequence[StabilityCase]) -> Table:
+    """The legend: each case's input, expectation and what is extreme about it."""
+    rows = [Row(c.name, {("", "input"): c.input_summary, ("", "expected"): c.expect,
+                         ("", "description"): c.description}) for c in cases]
+    return Table("stability_cases", "stability", "Cases", CASE_COLUMNS, [""], [Block(rows, ranked=False)],
+                 lead=("case",), group_heads=False)
+
+
 def to_csv(rows: Iterable[dict]) -> str:
-    return rows_csv(rows, COLUMNS, _cell)
+    return writer.to_csv([stability_table(list(rows))])
 
 
 def to_markdown(rows: Sequence[dict], cases: Sequence[StabilityCase], options: StabilityOptions,
                 wall_s: float | None = None) -> str:
-    """The table with a header saying how it was made, and a legend of the cases."""
-    cols = [c for c in COLUMNS if c != "nan_where"]
+    """The table with a header saying how it was made, and a legend of the cases (the table writer's Markdown)."""
     failed = [r for r in rows if r["verdict"] != "ok"]
     lines = ["# Stability report", "",
              f"Scene `{options.scene}` ({options.size}), preset `{options.preset}` rescaled to {options.iterations} "
@@ -547,22 +579,8 @@ def to_markdown(rows: Sequence[dict], cases: Sequence[StabilityCase], options: S
              "",
              f"{len(rows)} run(s): " + ", ".join(f"{sum(r['outcome'] == o for r in rows)} {o}" for o in OUTCOMES)
              + f"; {sum(r['nan_seen'] for r in rows)} saw NaN / inf; "
-             + (f"**{len(failed)} failed**." if failed else "all ended in a result or a clear error."), "",
-             "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    for r in rows:
-        cells = []
-        for c in cols:
-            text = _cell(r, c)
-            if c == "nan_seen" and r["nan_seen"]:
-                text = f"yes ({_cell(r, 'nan_where')})"
-            if c == "message":
-                text = shorten(text, MD_MESSAGE_CHARS)
-            cells.append(text.replace("|", "\\|"))
-        lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", "| case | input | expected | what is extreme |", "|---|---|---|---|"]
-    for c in cases:
-        lines.append(f"| {c.name} | {c.input_summary.replace('|', '/')} | {c.expect} | {c.description} |")
-    return "\n".join(lines) + "\n"
+             + (f"**{len(failed)} failed**." if failed else "all ended in a result or a clear error."), ""]
+    return "\n".join(lines) + writer.to_markdown(stability_table(rows)) + writer.to_markdown(cases_table(cases))
 
 
 def write_report(out: str | Path, rows: Sequence[dict], cases: Sequence[StabilityCase], options: StabilityOptions,

@@ -55,7 +55,8 @@ from typing import Callable, Sequence
 import numpy as np
 
 from benchmark.cell import DEFAULT_PRESET, DEFAULT_SIZE, Cell
-from benchmark.report import rows_csv
+from benchmark.tables import writer
+from benchmark.tables.model import Block, Column, LongFormat, Row, Table
 from nimbus.errors import NimbusError
 
 DEFAULT_SCENE = "garden"
@@ -342,27 +343,42 @@ def _number(v):
     return None if v is None or (isinstance(v, float) and not math.isfinite(v)) else v
 
 
-def to_csv(rows: Sequence[dict]) -> str:
-    """CSV with :data:`CSV_COLUMNS`, values unrounded, missing values empty."""
-    return rows_csv(rows, CSV_COLUMNS, lambda r, c: "" if r[c] is None else r[c])
+#: What tradeoff.md shows: the knob is the row label; numbers as printed (never ranked: the fronts mark instead).
+MD_COLUMNS = (
+    Column("shown_value", "value", "value", align="left"), Column("shown_psnr", "PSNR↑", "PSNR", 2),
+    Column("shown_ssim", "SSIM↑", "SSIM", 3), Column("shown_lpips", "LPIPS↓", "LPIPS", 3),
+    Column("shown_train_time_s", "train s", "train s", 1), Column("shown_wall_time_s", "cell s", "cell s", 1),
+    Column("shown_peak_memory_mb", "peak MB", "peak MB", 0),
+    Column("shown_num_gaussians", "Gaussians", "Gaussians", 0),
+    *(Column(f"front_{c}", f"front {q.upper()}/{COST_NAMES[k].replace('memory', 'mem')}",
+             f"front {q.upper()}/{COST_NAMES[k]}", align="center")
+      for (q, k), c in zip(PANELS, PARETO_COLUMNS)))
+CSV_FORMAT = LongFormat("tradeoff.csv", "the trade-off sweep, one line per (knob, value)", CSV_COLUMNS)
+#: Values shown rounded (``shown_<key>``); the CSV lines carry them raw, as the row's fields.
+_SHOWN = ("psnr", "ssim", "lpips", "train_time_s", "wall_time_s", "peak_memory_mb", "num_gaussians")
 
 
-def to_markdown(rows: Sequence[dict], header: Sequence[str] = ()) -> str:
-    """GitHub Markdown table; a ● in a front column marks a cell on that panel's Pareto front."""
-    def f(v, spec):
-        return "–" if v is None else format(v, spec)
-
-    head = ["knob", "value", "PSNR↑", "SSIM↑", "LPIPS↓", "train s", "cell s", "peak MB", "Gaussians",
-            "front PSNR/time", "front PSNR/mem", "front LPIPS/time", "front LPIPS/mem"]
-    lines = [*header, "", "| " + " | ".join(head) + " |", "|" + "|".join([":---"] * 2 + ["---:"] * 7 + [":---:"] * 4)
-             + "|"]
+def tradeoff_table(rows: Sequence[dict], title: str = "Trade-off", notes: Sequence[str] = ()) -> Table:
+    """The sweep as a :class:`~benchmark.tables.model.Table`: one row per (knob, value), a ● in a front column
+    for a cell on that panel's Pareto front; its CSV lines carry the rows' raw fields (:data:`CSV_COLUMNS`)."""
+    out = []
     for r in rows:
         value = r["value"] + (" (base)" if r["base"] else "") + ("" if r["status"] == "ok" else f" [{r['status']}]")
-        cells = [r["knob"], value, f(r["psnr"], ".2f"), f(r["ssim"], ".3f"), f(r["lpips"], ".3f"),
-                 f(r["train_time_s"], ".1f"), f(r["wall_time_s"], ".1f"), f(r["peak_memory_mb"], ".0f"),
-                 f(r["num_gaussians"], "d"), *("●" if r[c] else "" for c in PARETO_COLUMNS)]
-        lines.append("| " + " | ".join(str(c).replace("|", "\\|") for c in cells) + " |")
-    return "\n".join(lines) + "\n"
+        values = {("", "shown_value"): value, **{("", f"shown_{c}"): r[c] for c in _SHOWN},
+                  **{("", f"front_{c}"): "●" if r[c] else "" for c in PARETO_COLUMNS}}
+        out.append(Row(r["knob"], values, fields={c: "" if r[c] is None else r[c] for c in CSV_COLUMNS}))
+    return Table("tradeoff", "tradeoff", title, MD_COLUMNS, [""], [Block(out, ranked=False)], lead=("knob",),
+                 notes=[n.rstrip(".") for n in notes], group_heads=False, csv=CSV_FORMAT)
+
+
+def to_csv(rows: Sequence[dict]) -> str:
+    """CSV with :data:`CSV_COLUMNS`, values unrounded, missing values empty."""
+    return writer.to_csv([tradeoff_table(rows)])
+
+
+def to_markdown(rows: Sequence[dict], title: str = "Trade-off", notes: Sequence[str] = ()) -> str:
+    """The table in GitHub Markdown (the table writer's)."""
+    return writer.to_markdown(tradeoff_table(rows, title, notes))
 
 
 # --- the plot ------------------------------------------------------------------------------------------
@@ -432,8 +448,8 @@ def write_tradeoff(rows: Sequence[dict], out: str | Path, title: str = "", heade
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise NimbusError(f"--out {out} is a file; give a folder")
-    texts = {"tradeoff.csv": to_csv(rows), "tradeoff.md": to_markdown(rows, [f"## {title}", "", *header]
-                                                                       if title else header)}
+    table = tradeoff_table(rows, title or "Trade-off", header)
+    texts = {"tradeoff.csv": writer.to_csv([table]), "tradeoff.md": writer.to_markdown(table)}
     png = plot_tradeoff(rows, title)
     written = [atomic_write_text(out / name, text) for name, text in texts.items()]
     written.append(atomic_write_bytes(out / "tradeoff.png", png))

@@ -3,6 +3,7 @@
 * ``reference/<tool>.md``: each command-line tool's ``--help`` and every verb's, rendered from the tools' own
   argparse parsers (``build_parser()``), so the command reference cannot go stale.
 * ``reference/methods.md``: every registered method (``nimbus.methods.registry.METHODS``) with what it changes.
+* ``reference/tools.md``: ``tools/README.md``, the developer and research scripts of a checkout (not installed).
 * ``results/*.md``: the READMEs of the committed table folders (``tables/README.md``, ``tables/<folder>/README.md``)
   and of the reference data (``benchmark/data/README.md``), so the site links to the recorded results and the
   history of how each figure came to be stays beside its table.
@@ -131,6 +132,7 @@ def on_files(files, config):
     for tool in TOOLS:
         files.append(File.generated(config, f"reference/{tool}.md", content=reference_page(tool)))
     files.append(File.generated(config, "reference/methods.md", content=methods_page()))
+    files.append(File.generated(config, "reference/tools.md", content=(ROOT / "tools" / "README.md").read_text()))
     pages = _table_pages()
     folders = {Path(p).stem for p in pages}
     for uri, source in pages.items():

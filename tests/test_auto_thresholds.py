@@ -1,9 +1,9 @@
-"""The rule ``python -m benchmark.auto_thresholds`` derives ``auto``'s thresholds by, on made-up cells (no training)."""
+"""The rule ``python -m tools.auto_thresholds`` derives ``auto``'s thresholds by, on made-up cells (no training)."""
 
 import numpy as np
 import pytest
 
-from benchmark.auto_thresholds import (VARIANTS, Cell, choose, derive_haze, derive_particles, margin, shortfall,
+from tools.auto_thresholds import (VARIANTS, Cell, choose, derive_haze, derive_particles, margin, shortfall,
                                        variant_overrides)
 from nimbus.config_set import apply_overrides
 from nimbus.nimbusgs.auto import haze_present, particle_thresholds
@@ -108,7 +108,7 @@ def test_variants_force_auto_one_way_whatever_the_evidence():
 
 @pytest.mark.parametrize("argv", [["--sizes", "huge"], ["--report", "--sizes", "huge"]])
 def test_an_unknown_size_is_one_line_and_writes_nothing(argv, tmp_path, monkeypatch, capsys):
-    from benchmark import auto_thresholds, restore_thresholds
+    from tools import auto_thresholds, restore_thresholds
     from nimbus.cli_util import run_cli
 
     monkeypatch.chdir(tmp_path)
@@ -122,7 +122,7 @@ def test_an_unknown_size_is_one_line_and_writes_nothing(argv, tmp_path, monkeypa
 
 @pytest.mark.parametrize("seeds", ["0", "1,0", "-3", "2,2"])
 def test_the_benchmarks_own_scene_seed_is_refused_for_validation(seeds, tmp_path, monkeypatch, capsys):
-    from benchmark import auto_thresholds
+    from tools import auto_thresholds
     from nimbus.cli_util import run_cli
 
     monkeypatch.chdir(tmp_path)
@@ -133,7 +133,7 @@ def test_the_benchmarks_own_scene_seed_is_refused_for_validation(seeds, tmp_path
 
 
 def test_a_root_made_with_another_scene_seed_is_refused_before_anything_is_written(tmp_path, capsys):
-    from benchmark import auto_thresholds
+    from tools import auto_thresholds
     from nimbus.cli_util import run_cli
 
     made = tmp_path / "val" / "seed-2" / "scenes" / "garden-tiny"  # a seed-1 scene where seed 2's belong
@@ -147,7 +147,7 @@ def test_a_root_made_with_another_scene_seed_is_refused_before_anything_is_writt
 
 
 def test_checks_report_each_default_against_its_runs_and_skip_haze_only_checks_on_clear_cells(capsys):
-    from benchmark.auto_thresholds import CHECKS, HAZE_ONLY_CHECKS, report_checks
+    from tools.auto_thresholds import CHECKS, HAZE_ONLY_CHECKS, report_checks
 
     assert HAZE_ONLY_CHECKS <= set(CHECKS)
     cells = [cell("H", 0.0, 0.1, 0.0, csm_gain=2.0), cell("R", 1.0, 0.3, 0.001)]
@@ -169,7 +169,7 @@ def test_checks_report_each_default_against_its_runs_and_skip_haze_only_checks_o
 
 
 def test_gains_and_evidence_are_means_over_the_training_seeds(tmp_path):
-    from benchmark.auto_thresholds import gather, seed_name, split_seed
+    from tools.auto_thresholds import gather, seed_name, split_seed
 
     assert seed_name("csm+plm", 0) == "csm+plm" and seed_name("csm+plm", 1) == "csm+plm@s1"
     assert split_seed("csm+plm@s1") == ("csm+plm", 1) and split_seed("none") == ("none", 0)
@@ -191,7 +191,7 @@ def test_gains_and_evidence_are_means_over_the_training_seeds(tmp_path):
 
 @pytest.mark.parametrize("text", ["", "a", "1,1", "-1", "0,,x"])
 def test_bad_training_seeds_are_one_clear_error(text):
-    from benchmark.auto_thresholds import parse_seeds
+    from tools.auto_thresholds import parse_seeds
     from nimbus.errors import NimbusError
 
     with pytest.raises(NimbusError, match="--seeds"):
@@ -199,7 +199,7 @@ def test_bad_training_seeds_are_one_clear_error(text):
 
 
 def test_cells_of_each_scene_seed_are_apart(tmp_path, monkeypatch):
-    from benchmark import auto_thresholds
+    from tools import auto_thresholds
 
     def fake_prepare(root, sizes, seed):
         data = root / "data" / "garden-tiny"
@@ -238,7 +238,7 @@ def _store(root, seed=1, pairs=(("H", 19.1, 19.3, ["csm", "plm", "ggs"], 0.03),
 
 
 def test_a_stores_pairs_are_hazy_cells_with_plm_on_and_off(tmp_path):
-    from benchmark.auto_thresholds import store_cells
+    from tools.auto_thresholds import store_cells
 
     cells = store_cells(_store(tmp_path))
     assert [(c.setting, c.psnr, c.particles[True]) for c in cells] == [
@@ -250,7 +250,7 @@ def test_a_stores_pairs_are_hazy_cells_with_plm_on_and_off(tmp_path):
 
 
 def test_a_cell_auto_left_haze_free_is_not_a_hazy_pair(tmp_path):
-    from benchmark.auto_thresholds import store_cells
+    from tools.auto_thresholds import store_cells
 
     cells = store_cells(_store(tmp_path, pairs=(("H", 19.1, 19.3, ["csm", "plm", "ggs"], 0.03),
                                                 ("R", 25.0, 24.0, ["plm"], 0.5))))
@@ -262,7 +262,7 @@ def test_a_cell_auto_left_haze_free_is_not_a_hazy_pair(tmp_path):
     (1, (), "no hazy cell"),
 ])
 def test_a_store_of_the_benchmarks_own_scenes_or_without_pairs_is_refused(seed, pairs, message, tmp_path, capsys):
-    from benchmark.auto_thresholds import main
+    from tools.auto_thresholds import main
     from nimbus.cli_util import run_cli
 
     root = _store(tmp_path, seed=seed) if pairs is None else _store(tmp_path, seed=seed, pairs=pairs)

@@ -1,4 +1,4 @@
-"""benchmark.gpu_check: what it says without CUDA, and its checks run on the CPU."""
+"""tools.gpu_check: what it says without CUDA, and its checks run on the CPU."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import re
 import pytest
 import torch
 
-from benchmark import gpu_check
+from tools import gpu_check
 from nimbus.train.run_folder import load_scene_arg
 
 

@@ -450,8 +450,9 @@ def test_cli_resumes_and_prints_the_table(finished, capsys):
     assert "skipping 2 finished cell(s)" in err and "clean-ceiling" not in err
     assert (root / "results.jsonl").read_bytes() == before  # --no-ceiling: nothing left to train
     lines = out.splitlines()
-    assert lines[0].split() == ["weather", "method", "cells", "PSNR", "SSIM", "LPIPS", "train", "s", "errors"]
-    assert lines[1].split()[:3] == ["H", "3dgs", "1"] and lines[2].split()[:3] == ["R", "3dgs", "1"]
+    assert lines[0].split() == ["Weather", "Method", "PSNR↑", "SSIM↑", "LPIPS↓", "Train", "s↓", "Cells", "Errors"]
+    assert lines[1].split()[:2] == ["H", "3dgs"] and lines[2].split()[:2] == ["R", "3dgs"]
+    assert lines[1].split()[-2:] == lines[2].split()[-2:] == ["1", "0"]  # one cell each, no error
     assert "SSIM protocol: 3dgs" in out and "ceiling" not in out and "ΔPSNR" not in out
     assert not any(line.startswith(CEILING) for line in lines)
 
@@ -488,9 +489,9 @@ def test_cli_trains_the_clean_ceiling_once_on_the_clean_views(finished, tmp_path
         assert v["psnr"] == pytest.approx(psnr(read_image(render), read_image(clean / "images" / v["name"])))
     # The summary: the ceiling first, then each line's gap to it (its PSNR minus the ceiling's).
     lines = out.splitlines()
-    assert lines[0].split()[-1] == "ΔPSNR"
-    assert lines[1].split()[:3] == [CEILING, "3dgs", "1"] and float(lines[1].split()[3]) == \
-        pytest.approx(ceiling["psnr"], abs=0.005)
+    assert lines[0].split()[-3:] == ["ΔPSNR", "vs", "clean"]
+    first = lines[1].split()
+    assert first[:5] == [CEILING, "3DGS", "(clean", "views)", f"{ceiling['psnr']:.2f}"] and first[-3:] == ["1", "0", "n/a"]
     for line, rec in zip(lines[2:4], weather):
         assert line.split()[0] == rec["weather"]
         assert float(line.split()[-1]) == pytest.approx(rec["psnr"] - ceiling["psnr"], abs=0.005)

@@ -271,3 +271,36 @@ def test_the_scripts_sort_toggle_the_differences_and_enlarge(report, tmp_path):
     diffs = re.findall(r'<img[^>]*\bsrc="([^"]+)"[^>]*\bdata-diff="([^"]+)"', dom)
     assert diffs and all(src == diff for src, diff in diffs)  # every thumbnail shows its difference
     assert re.search(r'<div id="lightbox" style="display: flex;"><img[^>]*src="[^"]+_diff\.jpg"', dom)
+
+
+def test_the_templates_escape_what_they_show():
+    from benchmark.tables.model import Block, Column, Row, Table
+    from benchmark.tables.writer import to_html, to_text
+
+    t = Table("t", "t", "T", (Column("v", "v<w", "v", 1, higher_is_better=True),), [""],
+              [Block([Row("<script>alert(1)</script>", {("", "v"): 2.0}), Row("b&c", {("", "v"): 1.0})], name="H")],
+              lead=("Method", "Weather"), notes=["a <i>note</i>"])
+    html = to_html(t)
+    assert "<script>" not in html and "<i>" not in html
+    assert "&lt;script&gt;alert(1)&lt;/script&gt;" in html and "b&amp;c" in html and "v&lt;w" in html
+    assert '<td data-v="2.0" class="best">2.0</td>' in html and '<td data-v="1.0">1.0</td>' in html
+    # Text is not HTML: as it is, in columns (labels left, values right), the notes below.
+    assert to_text(t).splitlines() == ["Weather  Method                     v<w",
+                                       "H        <script>alert(1)</script>  2.0",
+                                       "H        b&c                        1.0", "a <i>note</i>."]
+
+
+def test_another_commands_csv_is_a_table_of_the_writer(tmp_path):
+    from benchmark.tables.writer import from_csv, to_html
+
+    path = tmp_path / "tradeoff.csv"
+    path.write_text("knob,value,psnr,note\niterations,6,12.5,<b>\niterations,12,inf,\n")
+    t = from_csv(path)
+    assert [c.text for c in t.columns] == ["value", "psnr", "note"] and t.lead == ("knob",)
+    html = to_html(t)
+    assert "<th>knob</th><th>value</th><th>psnr</th><th>note</th>" in html  # no block column: no block has a name
+    assert '<td data-v="12.5">12.5</td><td>&lt;b&gt;</td>' in html  # numbers sort by value, text by what it says
+    assert '<td data-v="">inf</td>' in html  # not a finite number: sorted last
+    empty = tmp_path / "stability.csv"
+    empty.write_text("")
+    assert "stability.csv is empty." in to_html(from_csv(empty))

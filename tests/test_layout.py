@@ -14,10 +14,11 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("nimbus", "weather_synth", "benchmark")
-#: Which packages each may import (the direction of the layers).
+PACKAGES = ("nimbus", "weather_synth", "benchmark", "tools")
+#: Which packages each may import (the direction of the layers); ``tools`` (not installed) is never imported by them.
 ALLOWED = {"nimbus": {"nimbus"}, "weather_synth": {"weather_synth", "nimbus"},
-           "benchmark": {"benchmark", "weather_synth", "nimbus"}}
+           "benchmark": {"benchmark", "weather_synth", "nimbus"},
+           "tools": {"tools", "benchmark", "weather_synth", "nimbus"}}
 
 
 def modules(root: Path, packages=PACKAGES) -> dict[str, Path]:
@@ -103,6 +104,44 @@ def test_imports_go_one_way(graph):
     wrong = sorted((m, t) for m, targets in graph.items() for t in targets
                    if t.split(".")[0] not in ALLOWED[m.split(".")[0]])
     assert wrong == []
+
+
+def installed_packages(root: Path) -> list[str]:
+    """The packages the wheel ships: setuptools' ``find_packages`` with pyproject.toml's ``include`` patterns."""
+    from setuptools import find_packages
+
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11+
+
+    find = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]
+    return sorted(find_packages(where=str(root), include=find["include"], exclude=find.get("exclude", ())))
+
+
+def test_the_wheel_ships_the_three_packages_and_not_tools():
+    shipped = installed_packages(ROOT)
+    assert {"nimbus", "weather_synth", "benchmark", "benchmark.commands", "benchmark.tables"} <= set(shipped)
+    assert [p for p in shipped if p.split(".")[0] not in {"nimbus", "weather_synth", "benchmark"}] == []
+    # and what moved to tools/ left benchmark/ (a stale copy there would ship again)
+    assert not any(p.startswith("benchmark.speed") for p in shipped)
+    assert not (ROOT / "benchmark" / "gpu_check.py").exists()
+
+
+def test_the_report_templates_ship_as_package_data():
+    import fnmatch
+
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11+
+    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["benchmark"]
+    files = [p.relative_to(ROOT / "benchmark").as_posix() for p in (ROOT / "benchmark" / "templates").rglob("*")
+             if p.is_file()]
+    assert "templates/report.html" in files and "templates/table.html" in files
+    assert [f for f in files if not any(fnmatch.fnmatch(f, pat) for pat in declared)] == []
+
+
+def test_the_wheel_check_can_fail(tmp_path):
+    for pkg in ("nimbus", "tools", "tools/speed"):
+        (tmp_path / pkg).mkdir(parents=True)
+        (tmp_path / pkg / "__init__.py").write_text("")
+    (tmp_path / "pyproject.toml").write_text('[tool.setuptools.packages.find]\ninclude = ["nimbus*", "tools*"]\n')
+    assert installed_packages(tmp_path) == ["nimbus", "tools", "tools.speed"]
 
 
 def test_the_checks_can_fail(tmp_path):

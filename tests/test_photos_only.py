@@ -13,7 +13,7 @@ import json
 
 import pytest
 
-from benchmark.speed.sfm import render_photos
+from tools.speed.sfm import render_photos
 from nimbus.data.align import pose_error
 from nimbus.data.io import load_scene
 from nimbus.train.config import preset

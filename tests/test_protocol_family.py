@@ -17,7 +17,7 @@ from benchmark.cli import TOOL
 from benchmark.grid import InlineExecutor, build_cells, resolve_methods, run_grid
 from benchmark.store import load_results
 from benchmark.tables.comparison import tables as comparison_tables
-from benchmark.tables.summary import summary_table
+from benchmark.tables.summary import summary_text
 from nimbus.cli_util import run_cli
 from nimbus.data.images import read_image
 from nimbus.errors import NimbusError
@@ -76,7 +76,7 @@ def test_physical_family_end_to_end(tmp_path, capsys):
     assert "Synthesis protocol: physical (one medium per scene" in hp.notes[0]
     assert hp.layout == "H@physical" and hp.label == "tab:nimbus-bench-H-physical"
     assert h.row("3dgs").values[("garden", "psnr")] != hp.row("3dgs").values[("garden", "psnr")]
-    summary = summary_table(df, ["3dgs"]).splitlines()
+    summary = summary_text(df, ["3dgs"]).splitlines()
     assert [line.split()[0] for line in summary[1:3]] == ["H", "H@physical"]
     out = tmp_path / "tables"
     assert run_cli(TOOL.run, ["tables", "--root", str(root), "--out", str(out)]) == 0

@@ -1,4 +1,4 @@
-"""benchmark.speed.training times a run without changing it; nimbus-bench setup-kernels builds the kernels."""
+"""tools.speed.training times a run without changing it; nimbus-bench setup-kernels builds the kernels."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from benchmark.cli import TOOL
-from benchmark.speed import training
+from tools.speed import training
 from nimbus.cli_util import run_cli
 from nimbus.methods.registry import get_method
 from nimbus.train.run_folder import load_scene_arg

@@ -15,7 +15,7 @@ from benchmark.tables.comparison import tables as comparison_tables
 from benchmark.tables.margins import tables as margins_tables
 from benchmark.tables.model import rank_marks
 from benchmark.tables.results import ABLATION_OURS, COMPARISON_OURS
-from benchmark.tables.summary import summary_table
+from benchmark.tables.summary import summary_text
 from benchmark.tables.writer import to_csv, to_latex, to_markdown
 from nimbus.cli_util import run_cli
 from nimbus.errors import NimbusError
@@ -243,8 +243,8 @@ def test_no_ceiling_record_no_ceiling_row_and_no_word_of_it(tables, store_root):
         assert "ceiling" not in to_markdown(t) and "clean views" not in to_markdown(t)
     [m], _ = margins_tables(load_results(store_root), ["nimbus", "3dgs"])
     assert ceiling.LABEL not in m.groups and "ceiling" not in to_markdown(m)
-    assert "ΔPSNR" not in summary_table(load_results(store_root)) and "ceiling" not in \
-        summary_table(load_results(store_root))
+    assert "ΔPSNR" not in summary_text(load_results(store_root)) and "ceiling" not in \
+        summary_text(load_results(store_root))
 
 
 def test_a_method_meets_the_ceiling_of_its_own_preset(tmp_path):
@@ -360,25 +360,29 @@ def test_margins_add_ours_gap_to_the_clean_ceiling(ceiling_root):
 
 
 def test_summary_gives_each_line_its_gap_to_the_ceiling(ceiling_root):
-    lines = summary_table(load_results(ceiling_root), ["nimbus", "3dgs"]).splitlines()
-    assert lines[0].split()[-1] == "ΔPSNR"
-    assert lines[1].split()[:4] == ["clean", "3dgs", "3", f"{(30 + 31 + 33) / 3:.2f}"] and len(lines[1].split()) == 8  # no gap of its own
-    rows = {tuple(x.split()[:2]): x.split() for x in lines[2:] if x[:1] in "HRS"}
+    lines = summary_text(load_results(ceiling_root), ["nimbus", "3dgs"]).splitlines()
+    cols = [re.split(r"\s{2,}", line.strip()) for line in lines]
+    head = cols[0]
+    assert head[:2] == ["Weather", "Method"] and head[-1] == "ΔPSNR vs clean"
+    first = dict(zip(head, cols[1]))
+    assert (first["Weather"], first["Method"], first["Cells"]) == ("clean", ceiling.LABEL, "3")
+    assert first["PSNR↑"] == f"{(30 + 31 + 33) / 3:.2f}" and first["ΔPSNR vs clean"] == "n/a"  # no gap of its own
+    rows = {tuple(c[:2]): dict(zip(head, c)) for c in cols[2:] if c[0] in ("H", "R", "S")}
     # Per cell: its PSNR minus its scene's ceiling (garden 30.5, street 33), then the mean over the line's cells.
-    assert float(rows[("H", "nimbus")][-1]) == pytest.approx(((21 - 30.5) + (23 - 33)) / 2, abs=0.005)
-    assert float(rows[("R", "3dgs")][-1]) == pytest.approx(((24 - 30.5) + (22 - 33)) / 2, abs=0.005)
-    assert rows[("S", "3dgs")][-1] == "n/a"  # an error cell: no PSNR, no gap
-    assert "ΔPSNR = PSNR minus the ceiling's" in lines[-1]
+    assert float(rows[("H", "nimbus")]["ΔPSNR vs clean"]) == pytest.approx(((21 - 30.5) + (23 - 33)) / 2, abs=0.005)
+    assert float(rows[("R", "3dgs")]["ΔPSNR vs clean"]) == pytest.approx(((24 - 30.5) + (22 - 33)) / 2, abs=0.005)
+    assert rows[("S", "3dgs")]["ΔPSNR vs clean"] == "n/a"  # an error cell: no PSNR, no gap
+    assert "ΔPSNR vs clean = the mean over a row's finished cells of the cell's PSNR minus" in lines[-1]
 
 
 def test_summary_table_counts_errors(store_root):
-    text = summary_table(load_results(store_root), ["nimbus", "3dgs"])
+    text = summary_text(load_results(store_root), ["nimbus", "3dgs"])
     lines = text.splitlines()
     s_row = next(line for line in lines if line.startswith("S "))
     assert s_row.split()[-1] == "1" and "n/a" in s_row
     h_rows = [line.split() for line in lines if line.startswith("H ")]
     assert [r[1] for r in h_rows] == ["nimbus", "3dgs", "restore+3dgs"]
-    assert float(h_rows[0][3]) == pytest.approx(22.0)
+    assert float(h_rows[0][2]) == pytest.approx(22.0)  # weather, method, then PSNR
 
 
 def test_tables_command(store_root, tmp_path, capsys):

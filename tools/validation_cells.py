@@ -5,8 +5,8 @@
     python -m tools.validation_cells --summary records.jsonl --tags A,B[,...]
 
 A FOLDER is a synthesised setting folder of a validation scene (scene and synthesis seed >= 1, never the
-benchmark's 0), e.g. ``VAL/data/garden-tiny/H`` after ``python -m benchmark.restore_thresholds --root VAL
---sizes tiny`` (seed 1; ``benchmark.restore_thresholds.prepare(root, sizes, seed)`` for other seeds).  Each
+benchmark's 0), e.g. ``VAL/data/garden-tiny/H`` after ``python -m tools.restore_thresholds --root VAL
+--sizes tiny`` (seed 1; ``tools.restore_thresholds.prepare(root, sizes, seed)`` for other seeds).  Each
 folder's run is trained in a temporary folder, its test views scored against ``clean/`` (PSNR on 8-bit renders,
 SSIM of the 3DGS protocol, no LPIPS), and one JSON record appended to ``--out``: tag, method, folder, the
 ``--set`` overrides, seed, PSNR, SSIM, seconds and, for a method with a medium on a hazy folder, the learned

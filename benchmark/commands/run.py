@@ -61,7 +61,7 @@ def _seeds(spec: str) -> list[int]:
 
 def run(args: argparse.Namespace) -> int:
     from benchmark.store import load_results
-    from benchmark.tables.summary import summary_table
+    from benchmark.tables.summary import summary_text
     from nimbus.data.builtin import list_scenes
     from nimbus.config_set import parse_set_args
     from weather_synth.settings import parse_family_weather
@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
     # would count as a failure here while it may well be finishing there.
     ids = {c.cell_id for c in cells} - set(outcome.running_elsewhere)
     df = df[df["cell_id"].isin(ids)]
-    print(summary_table(df, methods))
+    print(summary_text(df, methods), end="")
     say_failed(outcome, args.root)
     if outcome.running_elsewhere:
         print(f"{len(outcome.running_elsewhere)} cell(s) not in this table: another run on {args.root} is running "

@@ -1,60 +1,84 @@
-"""The plain-text summary ``nimbus-bench run`` prints at the end: one line per weather setting x method.
+"""The summary of a results store: one row per weather setting x method, means over its finished cells.
 
-With clean-ceiling records (:mod:`benchmark.tables.ceiling`) the ceiling is the first line (setting
-``clean``, method 3dgs) and a ``ΔPSNR`` column gives each line's gap to it.
+One :class:`~benchmark.tables.model.Table`, written by the one writer: as text at the end of ``nimbus-bench
+run`` (:func:`summary_text`) and as the HTML report's sortable first table (:mod:`benchmark.html_report`).
+Each weather setting is a block (best and second best marked per setting); a row's values are the means
+of PSNR / SSIM / LPIPS / training seconds over its finished cells (every scene and seed), with its cell and
+error counts.  With clean-ceiling records (:mod:`benchmark.tables.ceiling`) the ceiling is the first block
+and a ``ΔPSNR vs clean`` column gives each row's gap to it.
 """
 
 from __future__ import annotations
 
 from typing import Sequence
 
-from benchmark.cell import CEILING, CEILING_METHOD
+from benchmark.cell import CEILING
 from benchmark.tables import ceiling
-from benchmark.tables.results import ordered, protocols
+from benchmark.tables.model import Block, Column, Row, Table
+from benchmark.tables.results import METRIC_COLUMNS, finished, labelled, ordered, protocols
 from nimbus.errors import NimbusError
 
+#: Columns of the summary besides PSNR / SSIM / LPIPS.
+TIME_COLUMN = Column("train_time_s", "Train s↓", "Train s", 1, higher_is_better=False)
+COUNT_COLUMNS = (Column("cells", "Cells", "Cells"), Column("errors", "Errors", "Errors"))
+SUMMARY_COLUMNS = (*METRIC_COLUMNS, TIME_COLUMN, *COUNT_COLUMNS)
+#: The summary's gap to the clean ceiling, shown when the store has one.
+GAP_COLUMN = Column("d_psnr_ceiling", "ΔPSNR vs clean", r"$\Delta$PSNR vs clean", 2)
 
-def summary_table(df, method_order: Sequence[str] = ()) -> str:
-    """Plain-text table: mean per weather setting x method over scenes and seeds, with train time.
 
-    Error cells are counted, not averaged.  ``ΔPSNR`` (only with a finished ceiling cell) is the mean over
-    the line's finished cells of the cell's PSNR minus its scene's ceiling (:func:`~.ceiling.cell_gaps`).
+def summary_table(df, method_order: Sequence[str] = (), strict: bool = True) -> Table:
+    """Per weather setting (a block) x method (a row): means over the finished cells, counts, marks.
+
+    ``strict``: raise NimbusError for a store without a finished cell or mixing protocols (the report);
+    otherwise (what a run prints of its own cells) say so in a note.
     """
     from weather_synth.settings import family_order
 
-    if df is None or len(df) == 0:
-        return "(no results)"
-    ceilings = ceiling.split(df[df["status"] == "ok"])[1]
-    gaps = len(ceilings) > 0
-    # A setting of another protocol's family is named H+R+S@physical: the column widens to it.
-    ww = max(7, *(len(str(w)) for w in df["weather"]))
-    lines = [f"{'weather':<{ww}} {'method':<16} {'cells':>5} {'PSNR':>7} {'SSIM':>6} {'LPIPS':>6} {'train s':>8} "
-             f"{'errors':>6}" + (f" {'ΔPSNR':>6}" if gaps else "")]
-    for w in ordered(df["weather"], (CEILING, *family_order())):
-        sub = df[df["weather"] == w]
-        for m in ordered(sub["method"], method_order):
-            g = sub[sub["method"] == m]
-            ok = g[g["status"] == "ok"]
-
-            def mean(col: str, spec: str) -> str:
-                v = ok[col].astype(float)
-                return "n/a" if len(v) == 0 or v.isna().any() else format(v.mean(), spec)
-
-            line = (f"{w:<{ww}} {m:<16} {len(g):>5} {mean('psnr', '7.2f'):>7} {mean('ssim', '6.3f'):>6} "
-                    f"{mean('lpips', '6.3f'):>6} {mean('train_time_s', '8.1f'):>8} {len(g) - len(ok):>6}")
-            if gaps and w != CEILING:
-                gap = ceiling.mean_gap(ok, ceilings)
-                line += f" {'n/a' if gap is None else format(gap, '+6.2f'):>6}"
-            lines.append(line)
-    ok = df[df["status"] == "ok"]
+    if strict:
+        finished(df)
+    every = labelled(df.copy())
+    ok = every[every["status"] == "ok"]
+    ceilings = ceiling.split(ok)[1]
+    blocks = []
+    for w in ordered(every["weather"], (CEILING, *family_order())):
+        sub = every[every["weather"] == w]
+        rows = []
+        for m in ordered(sub["method_label"], method_order):
+            g = sub[sub["method_label"] == m]
+            good = g[g["status"] == "ok"]
+            row = Row(ceiling.label(m) if w == CEILING else m, fields={"method": m})
+            for col in (*METRIC_COLUMNS, TIME_COLUMN):
+                v = good[col.key].astype(float)
+                row.values[("", col.key)] = None if len(v) == 0 or v.isna().any() else float(v.mean())
+            row.values[("", "cells")] = float(len(g))
+            row.values[("", "errors")] = float(len(g) - len(good))
+            if len(ceilings) and w != CEILING:
+                row.values[("", GAP_COLUMN.key)] = ceiling.mean_gap(good, ceilings)
+            rows.append(row)
+        blocks.append(Block(rows, name=w, fields={"weather": w}))
+    notes = []
     if len(ok):
         try:
-            ssim_protocol, lp = protocols(ok.copy())
-            lines.append(f"PSNR/SSIM/LPIPS against the clean test views; SSIM protocol: {ssim_protocol}; "
-                         f"LPIPS: {lp}")
+            ssim_protocol, lp = protocols(ok)
+            notes.append(f"Means over the finished cells of each setting (every scene and seed) against the clean "
+                         f"test views; SSIM protocol: {ssim_protocol}; LPIPS: {lp}; Train s: the training loop's "
+                         "wall-clock seconds. Best and second best marked per setting")
         except NimbusError as e:
-            lines.append(f"note: {e}")
-    if gaps:
-        lines.append(f"{CEILING} = the clean ceiling ({CEILING_METHOD} trained on the clean views); ΔPSNR = PSNR "
-                     "minus the ceiling's of the same scene and preset, dB (n/a: a scene without one)")
-    return "\n".join(lines)
+            if strict:
+                raise
+            notes.append(f"Note: {e}")
+    if len(ceilings):
+        notes.append(f"{CEILING} = the clean ceiling, {ceiling.LABEL}: 3dgs trained on the clean training views; "
+                     f"{GAP_COLUMN.text} = the mean over a row's finished cells of the cell's PSNR minus its scene's "
+                     "ceiling (same size and preset), dB")
+    columns = (*SUMMARY_COLUMNS, GAP_COLUMN) if len(ceilings) else SUMMARY_COLUMNS
+    return Table("summary", "summary", "Summary", columns, [""], blocks, lead=("Method", "Weather"), notes=notes)
+
+
+def summary_text(df, method_order: Sequence[str] = ()) -> str:
+    """The summary as the text ``nimbus-bench run`` prints (``(no results)`` for none)."""
+    from benchmark.tables.writer import to_text
+
+    if df is None or len(df) == 0:
+        return "(no results)\n"
+    return to_text(summary_table(df, method_order, strict=False))

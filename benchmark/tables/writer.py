@@ -1,4 +1,4 @@
-"""The one writer: a :class:`~benchmark.tables.model.Table` as LaTeX, Markdown or long-format CSV.
+"""The one writer: a :class:`~benchmark.tables.model.Table` as LaTeX, Markdown, long-format CSV, text or HTML.
 
 LaTeX
     booktabs (``\\toprule`` / ``\\midrule`` / ``\\bottomrule``), scaled to the text width; the
@@ -9,6 +9,12 @@ Markdown
     GitHub tables: best **bold**, second best _italic_; the notes under the table.
 CSV
     Long format (:class:`~benchmark.tables.model.LongFormat`): values unrounded, marks as words.
+Text
+    Aligned columns for a terminal (what ``nimbus-bench run`` prints): the block name first, no marks.
+HTML
+    A sortable ``<table>`` (the report's, :mod:`benchmark.html_report`) from the Jinja2 template
+    ``benchmark/templates/table.html``: the block name first, each value's unrounded sort key in
+    ``data-v``, best / second best as the cell's class.
 
 :func:`write_tables` writes a set of tables into a folder, file by file and atomically.
 """
@@ -17,10 +23,12 @@ from __future__ import annotations
 
 import csv
 import io
+import math
 from pathlib import Path
 from typing import NamedTuple, Sequence
 
-from benchmark.tables.model import Combined, Table, finite
+from benchmark.tables.model import Block, Column, Combined, Row, Table, finite
+from benchmark.templating import render_template
 from nimbus.errors import NimbusError
 
 #: The paper's colour macros (``nimbusgs.tex`` preamble); ``\providecommand`` keeps a document's own.
@@ -31,6 +39,8 @@ MARK_WORDS = {1: "best", 2: "second"}
 MARKDOWN_ALIGN = {"right": "---:", "left": ":---", "center": ":---:", "none": "---"}
 MISSING_TEXT = "–"
 MISSING_LATEX = "--"
+MISSING_PLAIN = "n/a"
+HTML_MARKS = {1: "best", 2: "second"}
 _LATEX_SPECIAL = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",
                   "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}", "^": r"\^{}"}
 
@@ -139,6 +149,71 @@ def to_markdown(t: Table) -> str:
     if t.comment:
         lines.append(f"{t.comment[:1].upper()}{t.comment[1:]}.")
     return "\n".join(lines) + "\n"
+
+
+def _block_first(t: Table, missing: str) -> tuple[list[str], list[tuple[list[str], list[int | None]]]]:
+    """Heads (block, label, columns) and per row its texts and marks, for the one-group text and HTML forms."""
+    if len(t.groups) != 1:
+        raise ValueError(f"table {t.key}: text and HTML take one column group, not {len(t.groups)}")
+    group = t.groups[0]
+    heads = [t.lead[1] if len(t.lead) > 1 else "", t.lead[0], *(c.text for c in t.columns)]
+    rows = []
+    for bi, block in enumerate(t.blocks):
+        marks = {c.key: t.marks(group, c.key, bi) for c in t.columns}
+        for ri, row in enumerate(block.rows):
+            texts = [block.name, row.label] + [c.format(row.values.get((group, c.key)), missing) for c in t.columns]
+            rows.append((texts, [None, None] + [marks[c.key][ri] for c in t.columns], row))
+    return heads, rows
+
+
+def to_text(t: Table) -> str:
+    """The table as aligned plain text (one column group): labels left, values right, the notes below."""
+    heads, rows = _block_first(t, MISSING_PLAIN)
+    keep = [i for i in range(len(heads)) if i > 0 or any(texts[0] for texts, _, _ in rows)]
+    lines = [[heads[i] for i in keep]] + [[texts[i] for i in keep] for texts, _, _ in rows]
+    widths = [max(len(line[j]) for line in lines) for j in range(len(keep))]
+    left = [keep[j] < 2 or t.columns[keep[j] - 2].align == "left" for j in range(len(keep))]
+    out = ["  ".join(s.ljust(w) if lft else s.rjust(w) for s, w, lft in zip(line, widths, left)).rstrip()
+           for line in lines]
+    return "\n".join(out + [f"{n}." for n in t.notes]) + "\n"
+
+
+def _sort_key(v) -> float | str | None:
+    """What the page sorts a value by (``data-v``): a number (also one written as text), ``""`` for a missing
+    value (sorted last), None for other text (sorted by what it says)."""
+    if isinstance(v, str):
+        try:
+            num = float(v)
+        except ValueError:
+            return None
+        return num if math.isfinite(num) else ""
+    return v if finite(v) else ""
+
+
+def to_html(t: Table) -> str:
+    """The table as a sortable HTML ``<table>`` (one column group) and its notes, autoescaped.  The block column
+    is left out when no block has a name."""
+    heads, rows = _block_first(t, MISSING_TEXT)
+    group = t.groups[0]
+    first = 0 if any(b.name for b in t.blocks) else 1
+    cells = [[{"text": text, "sort": None, "mark": None} for text in texts[first:2]]
+             + [{"text": text, "mark": HTML_MARKS.get(mark), "sort": _sort_key(row.values.get((group, c.key)))}
+                for text, mark, c in zip(texts[2:], marks[2:], t.columns)]
+             for texts, marks, row in rows]
+    return render_template("table.html", heads=heads[first:], rows=cells, notes=[f"{n}." for n in t.notes])
+
+
+def from_csv(path: Path, key: str = "") -> Table:
+    """A CSV file with a header line as a table of text (another command's output, shown by the report): the first
+    field labels a row, every other is a column."""
+    with open(path, newline="", encoding="utf-8") as f:
+        lines = list(csv.reader(f))
+    head, body = (lines[0], lines[1:]) if lines else ([""], [])
+    columns = tuple(Column(f"c{i}", h, latex_escape(h), align="left") for i, h in enumerate(head[1:]))
+    rows = [Row(line[0] if line else "", {("", f"c{i}"): v for i, v in enumerate(line[1:])}) for line in body]
+    return Table(key or Path(path).stem, key or Path(path).stem, Path(path).name, columns, [""],
+                 [Block(rows, ranked=False)], lead=(head[0],), group_heads=False,
+                 notes=[] if body else [f"{Path(path).name} is empty"])
 
 
 def to_csv(tables: Sequence[Table]) -> str:

@@ -361,7 +361,7 @@ def _filter(maps: np.ndarray, valid: bool) -> np.ndarray:
     OpenCV's separable filter in float64 (exact to ~1e-15; float32 moments would lose ~4e-5
     of SSIM to cancellation in E[x^2] - E[x]^2), one map at a time: 11 multiply-adds per
     output and pass, ~4x faster on CPU than the banded matrix product it replaced
-    (``benchmark/speed/metrics.py``).  'valid' is the 'same' map without its
+    (``tools/speed/metrics.py``).  'valid' is the 'same' map without its
     ``SSIM_WINDOW // 2`` border, where no window reaches into the padding.
     """
     g = _gaussian_taps()

@@ -30,7 +30,7 @@ LPIPS_GT_CACHE_MB = 1024  # memory for cached ground-truth LPIPS features (MiB; 
 LPIPS_BACKENDS = ("auto", "onnxruntime", "torch")
 #: What ``backend="auto"`` runs each trunk with on the CPU: onnxruntime where it took less CPU time
 #: (VGG: ~1.2x less), torch where it did not (AlexNet: ~10% more with onnxruntime); see
-#: benchmark/speed/metrics.py.  Other devices use torch.
+#: tools/speed/metrics.py.  Other devices use torch.
 LPIPS_CPU_BACKEND = {"vgg": "onnxruntime", "alex": "torch"}
 
 

@@ -3,7 +3,7 @@
 The trunks dominate the cost of scoring (VGG16 on 320 x 240 is ~47 GFLOP per image).
 onnxruntime's CPU convolutions (blocked NCHWc kernels) run the VGG trunk at ~0.25 CPU
 seconds per 320 x 240 image here, about the core's float32 FMA peak, ~1.2x less CPU time
-than torch's oneDNN path (``benchmark/speed/metrics.py``; AlexNet: about equal).  The
+than torch's oneDNN path (``tools/speed/metrics.py``; AlexNet: about equal).  The
 ONNX graph is written here directly from :data:`nimbus.metrics.lpips_network.TRUNKS` and the
 weights, as ONNX protobuf bytes: a chain of ``MaxPool`` / ``Conv`` / ``Relu`` whose
 tapped ``Relu`` outputs are the graph's outputs.  Building it takes a fraction of a

@@ -36,7 +36,7 @@ Gaussians together) leaves more symmetric misfit: both statistics of the same pa
 come out about half as large.  A hazy scene is therefore judged by its own pair,
 ``auto_particle_threshold_haze`` and ``auto_particle_energy_haze``.  The pairs are
 derived on validation scenes, never on the benchmark's (``python -m
-benchmark.auto_thresholds``): every validation scene and setting where forcing PLM on
+tools.auto_thresholds``): every validation scene and setting where forcing PLM on
 gains >= 0.3 dB PSNR on their held-out views must be declared, and among the thresholds
 that do so, those that give away the fewest dB over all the validation cells are kept, with
 the widest margin among equals.  Both energy bars came out 0 (asymmetry alone decides).
@@ -46,7 +46,7 @@ pair that declares every cell in need is the one that declares every hazy scene:
 haze, PLM is always on (-1, 0) for such small views; the evidence is still measured and
 recorded.  Views of at least ``auto_large_view_pixels`` use a pair of their own,
 ``auto_particle_threshold_haze_large`` and ``auto_particle_energy_haze_large``, derived on
-small (240 x 180) validation cells (``python -m benchmark.auto_thresholds --store``): there
+small (240 x 180) validation cells (``python -m tools.auto_thresholds --store``): there
 the haze-only cells lose from PLM and show an asymmetry near 0.03, the hazy mixes gain at
 0.29 to 0.40.
 

@@ -296,15 +296,15 @@ class NimbusConfig(TrainConfig):
         (43,200).
     auto_particle_threshold_haze_large, auto_particle_energy_haze_large : float
         The haze pair for views of at least ``auto_large_view_pixels``, derived on the small
-        validation cells (``python -m benchmark.auto_thresholds --store``): at 240 x 180 the
+        validation cells (``python -m tools.auto_thresholds --store``): at 240 x 180 the
         haze-only cells lose from PLM and show almost no asymmetry (0.03), while the hazy
         mixes gain from it at 0.29-0.40.
 
     The four particle thresholds are derived on validation scenes (scene and synthesis
-    seeds 1 to 4, the benchmark's are 0) by ``python -m benchmark.auto_thresholds --quick``:
+    seeds 1 to 4, the benchmark's are 0) by ``python -m tools.auto_thresholds --quick``:
     of the values that declare every scene and setting where forcing PLM gains >= 0.3 dB (the
     mean over training seeds 0 and 1), those that give away the fewest dB over all the cells,
-    with the widest margin (see :mod:`benchmark.auto_thresholds`).
+    with the widest margin (see :mod:`tools.auto_thresholds`).
 
     Outputs
     -------
@@ -366,7 +366,7 @@ class NimbusConfig(TrainConfig):
     # auto
     auto_dark_threshold: float = 0.2
     auto_depth_corr: float = 0.5
-    # Particle thresholds from `python -m benchmark.auto_thresholds --quick` (seed-1 and seed-2 validation scenes,
+    # Particle thresholds from `python -m tools.auto_thresholds --quick` (seed-1 and seed-2 validation scenes,
     # tiny, PLM gains and evidence averaged over training seeds 0 and 1): without haze every one of the 11 of 24
     # cells that gain >= 0.3 dB is declared and no cell's better PLM state is given away; with haze (re-derived with
     # view_density on, session 9) the 5 of 24 that need PLM are declared and 0.46 dB is given away over the 24
@@ -375,7 +375,7 @@ class NimbusConfig(TrainConfig):
     auto_particle_energy: float = 0.0
     auto_particle_threshold_haze: float = -1.0
     auto_particle_energy_haze: float = 0.0
-    # The large-view haze pair from `python -m benchmark.auto_thresholds --store` on six small validation cells
+    # The large-view haze pair from `python -m tools.auto_thresholds --store` on six small validation cells
     # (seed-1 garden and street at 240 x 180, H, H+R, H+S, fast preset, training seed 0): the four mixes gain
     # +0.53 to +2.41 dB from PLM at asymmetries 0.289-0.397, the two haze-only cells lose 0.32 and 0.84 at 0.029 and
     # 0.033; 0.16 / 0 gives away nothing there (-1 / 0: 1.16 dB), margin 0.83 spreads.  A thin basis (see README).

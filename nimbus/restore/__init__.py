@@ -29,7 +29,7 @@ Thresholds of ``auto`` (chosen on validation data, never on test views)
 The built-in scenes (garden, street, tabletop) at sizes ``tiny`` and ``small`` rendered with
 scene seed 1 and degraded with synthesis seed 1 (the benchmark uses seed 0 for both), the
 ``onerestore`` protocol, all seven settings plus the clean views; training views only.
-Reproduce with ``python -m benchmark.restore_thresholds``, which prints the ranges below.
+Reproduce with ``python -m tools.restore_thresholds``, which prints the ranges below.
 
 * dark-channel mean: hazy views 0.328..0.685, haze-free views 0.084..0.306 (1176 views);
   :data:`HAZE_DARK_MEAN` = 0.32 separates them with no view wrong.

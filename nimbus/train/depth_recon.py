@@ -64,7 +64,7 @@ class ReconDepthConfig:
         Length of the fit; the preset's schedule is rescaled to it
         (:meth:`TrainConfig.rescaled`).  The default, 600 (the ``tiny`` schedule
         stretched twice), measured on the tiny built-in scenes without their
-        depth maps (``benchmark/speed/depth.py``): 300 -> 600 iterations raised
+        depth maps (``tools/speed/depth.py``): 300 -> 600 iterations raised
         garden's depth consistency 0.867 -> 0.882 and its share of pixels within
         5 % of the exact depth 0.48 -> 0.52 (street: 0.953 -> 0.947, 0.41 -> 0.42);
         1000 added under 0.01 to either for 1.7 times the time.

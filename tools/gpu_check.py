@@ -2,7 +2,7 @@
 
 Usage::
 
-    python -m benchmark.gpu_check [--iterations 150] [--scene builtin:garden:tiny]
+    python -m tools.gpu_check [--iterations 150] [--scene builtin:garden:tiny]
 
 On a CUDA machine, installing nothing, it checks:
 
@@ -47,7 +47,7 @@ from nimbus.errors import NimbusError
 
 #: Largest |PSNR(cuda) - PSNR(cpu)| of the same training run, dB (see the module docstring).
 PSNR_TOLERANCE_DB = 1.0
-#: The random rasterizer scene: image size and Gaussian count (:func:`benchmark.speed.rasterizer.make_scene`).
+#: The random rasterizer scene: image size and Gaussian count (:func:`tools.speed.rasterizer.make_scene`).
 RASTER_SCENE = (64, 48, 2_000)
 
 
@@ -69,7 +69,7 @@ def _outputs(out) -> list[torch.Tensor]:
 
 
 def _scene(dtype=torch.float32):
-    from benchmark.speed.rasterizer import make_scene
+    from tools.speed.rasterizer import make_scene
 
     gs, cam = make_scene(*RASTER_SCENE)
     return gs.to(dtype=dtype), cam

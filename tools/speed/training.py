@@ -2,9 +2,9 @@
 
 Usage::
 
-    python -m benchmark.speed.training [--scene builtin:garden] [--sizes tiny small]
-                                       [--methods 3dgs nimbus-full nimbus] [--preset tiny]
-                                       [--iterations N] [--warmup 10] [--threads 1,2]
+    python -m tools.speed.training [--scene builtin:garden] [--sizes tiny small]
+                                   [--methods 3dgs nimbus-full nimbus] [--preset tiny]
+                                   [--iterations N] [--warmup 10] [--threads 1,2]
 
 For each size (``builtin:NAME:SIZE``; a scene folder is timed once, at its own size), each
 method and each thread count, the method is built as ``nimbus-train`` builds it (its
@@ -61,6 +61,9 @@ from collections import defaultdict
 from contextlib import ExitStack, contextmanager
 
 import torch
+
+from benchmark.tables.model import Block, Column, Row, Table
+from benchmark.tables.writer import to_markdown
 
 #: The parts, in table order: (key, label).
 PARTS = (
@@ -244,30 +247,38 @@ def summarise(steps: list[dict[str, float]]) -> dict:
             "raster": 1e3 * statistics.median(raster), "steps": len(steps)}
 
 
-def markdown(title: str, runs: dict[str, dict]) -> str:
-    """One Markdown table: a row per part, a column group per run."""
+#: Per run (a column group): the part's typical milliseconds per call, its mean per iteration, its share.
+COLUMNS = (Column("call", "ms/call", "ms/call", 1), Column("iteration", "ms/it", "ms/it", 1),
+           Column("share", "share", "share", 0, unit="%"))
+
+
+def table(title: str, runs: dict[str, dict]) -> Table:
+    """A row per part, a column group per run (through the benchmark's table writer)."""
     names = list(runs)
-    head = "| part | " + " | ".join(f"{n} ms/call | ms/it | share" for n in names) + " |"
-    rule = "|---|" + "---:|---:|---:|" * len(names)
-    rows = [f"**{title}**", "", head, rule]
+    rows = []
     for key, label in PARTS:
         if all(runs[n]["parts"][key][2] == 0 for n in names):
             continue
-        cells = []
+        values = {}
         for n in names:
             med, per_it, _ = runs[n]["parts"][key]
-            cells.append(f"{med:.1f} | {per_it:.1f} | {100 * per_it / runs[n]['whole_mean']:.0f}%")
-        rows.append(f"| {label} | " + " | ".join(cells) + " |")
-    rows.append("| **whole iteration** (median / mean) | " + " | ".join(
-        f"{runs[n]['whole']:.1f} | {runs[n]['whole_mean']:.1f} | 100%" for n in names) + " |")
-    rows.append("| rasterizer fwd+bwd (median) | " + " | ".join(
-        f"{runs[n]['raster']:.1f} | | " for n in names) + " |")
-    rows.append("| whole / rasterizer | " + " | ".join(
-        f"{runs[n]['whole'] / runs[n]['raster']:.2f}x | | " if runs[n]["raster"] else "n/a | | " for n in names)
-        + " |")
-    rows.append("| Gaussians at the end, components | " + " | ".join(
-        f"{runs[n]['gaussians']} | {runs[n]['components']} | " for n in names) + " |")
-    return "\n".join(rows)
+            values.update({(n, "call"): med, (n, "iteration"): per_it, (n, "share"): 100 * per_it / runs[n]["whole_mean"]})
+        rows.append(Row(label, values))
+    rows += [Row("whole iteration (median / mean)",
+                 {(n, c): v for n in names for c, v in (("call", runs[n]["whole"]), ("iteration", runs[n]["whole_mean"]),
+                                                        ("share", 100.0))}, rule_before=True),
+             Row("rasterizer fwd+bwd (median)", {(n, "call"): runs[n]["raster"] for n in names}),
+             Row("whole / rasterizer", {(n, "call"): f"{runs[n]['whole'] / runs[n]['raster']:.2f}x"
+                                        if runs[n]["raster"] else "n/a" for n in names}),
+             Row("Gaussians at the end, components", {k: v for n in names for k, v in
+                                                      (((n, "call"), str(runs[n]["gaussians"])),
+                                                       ((n, "iteration"), runs[n]["components"]))})]
+    return Table("training", "training", title, COLUMNS, names, [Block(rows, ranked=False)], lead=("part",))
+
+
+def markdown(title: str, runs: dict[str, dict]) -> str:
+    """The table in GitHub Markdown."""
+    return to_markdown(table(title, runs))
 
 
 def ratio_lines(results: dict, threads: list[int]) -> list[str]:

@@ -2,8 +2,8 @@
 
 Usage::
 
-    python -m benchmark.speed.posed_init [--scenes garden,street] [--size small] [--preset fast]
-                                         [--inits scene,triangulated,random] [--work DIR] [--json OUT] [--seed 0]
+    python -m tools.speed.posed_init [--scenes garden,street] [--size small] [--preset fast]
+                                     [--inits scene,triangulated,random] [--work DIR] [--json OUT] [--seed 0]
 
 For each built-in scene it writes the scene as transforms.json twice, with its sparse points
 (``sparse_pc.ply``) and without, and trains 3DGS (``--preset``) on

@@ -2,8 +2,8 @@
 
 Usage::
 
-    python -m benchmark.speed.synth [--scene DIR | --size standard] [--weather all] [--protocol onerestore]
-                                    [--memory-views 12]
+    python -m tools.speed.synth [--scene DIR | --size standard] [--weather all] [--protocol onerestore]
+                                [--memory-views 12]
 
 Degrades a scene (default: the built-in garden at ``standard`` size, 48 views of
 320 x 240, rendered first and not timed) in every requested setting into a

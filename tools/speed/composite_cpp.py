@@ -2,7 +2,7 @@
 
 Usage::
 
-    python -m benchmark.speed.composite_cpp [--repeats 5] [--no-torch]
+    python -m tools.speed.composite_cpp [--repeats 5] [--no-torch]
 
 Prints one row per (image size, Gaussian count): the intersection count, the mean
 pixel alpha, forward and forward+backward wall milliseconds of
@@ -18,7 +18,7 @@ Inputs are synthetic but shaped like projected scenes: means uniform over the im
 (plus a margin), anisotropic footprints with sigma log-uniform in 0.7..6 px (3-sigma
 radii about 2..18 px), opacities half faint (0.05..0.5) and half strong (0.5..0.99), so
 pixels composite about 60 Gaussians before saturating (97 % reach T < 1e-3), 16 px
-tiles, float32.  The same distribution as ``benchmark.speed.rasterizer``.
+tiles, float32.  The same distribution as ``tools.speed.rasterizer``.
 """
 
 from __future__ import annotations

@@ -2,9 +2,9 @@
 
 Usage::
 
-    python -m benchmark.speed.photos_only [--scenes garden,street,tabletop] [--size small] [--preset fast]
-                                          [--weather-scene tabletop] [--weathers H,R,S] [--methods 3dgs,nimbus]
-                                          [--jobs 2] [--device cpu|cuda] [--work DIR] [--json OUT] [--seed 0]
+    python -m tools.speed.photos_only [--scenes garden,street,tabletop] [--size small] [--preset fast]
+                                      [--weather-scene tabletop] [--weathers H,R,S] [--methods 3dgs,nimbus]
+                                      [--jobs 2] [--device cpu|cuda] [--work DIR] [--json OUT] [--seed 0]
 
 For each built-in scene it runs what a user with photos runs, one subprocess per step:
 

@@ -2,8 +2,8 @@
 
 Usage::
 
-    python -m benchmark.speed.nimbusgs [--scene builtin:garden:small] [--preset fast] [--repeats 5]
-                                       [--threads N] [--reference] [--checkpoint RUN/checkpoint.pt]
+    python -m tools.speed.nimbusgs [--scene builtin:garden:small] [--preset fast] [--repeats 5]
+                                   [--threads N] [--reference] [--checkpoint RUN/checkpoint.pt]
 
 Builds a :class:`~nimbus.methods.nimbusgs.NimbusGS` (through :class:`~nimbus.train.runner.Runner`, so in
 its training frame) on ``--scene`` (a scene folder,

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python -m benchmark.speed.metrics [--views 50] [--size 320x240] [--nets vgg,alex] [--threads N]
+    python -m tools.speed.metrics [--views 50] [--size 320x240] [--nets vgg,alex] [--threads N]
 
 Scores ``--views`` synthetic pairs (a smooth colour texture and a noisy copy) and prints
 the seconds and milliseconds per view of each metric.  The issue's target is 50 views of

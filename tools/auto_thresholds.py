@@ -1,12 +1,12 @@
 """The validation runs behind ``components=auto``'s thresholds (:mod:`nimbus.nimbusgs.auto`), and what they show.
 
-    python -m benchmark.auto_thresholds [--root DIR] [--scene-seeds 1,2] [--sizes tiny] [--cache DIR] [--jobs N]
-                                        [--quick] [--checks]
-    python -m benchmark.auto_thresholds --report [--root DIR] [--cache DIR]
-    python -m benchmark.auto_thresholds --store ROOT
+    python -m tools.auto_thresholds [--root DIR] [--scene-seeds 1,2] [--sizes tiny] [--cache DIR] [--jobs N]
+                                    [--quick] [--checks]
+    python -m tools.auto_thresholds --report [--root DIR] [--cache DIR]
+    python -m tools.auto_thresholds --store ROOT
 
 On the validation scenes (the built-in scenes rendered and degraded with each of ``--scene-seeds``,
-1 to 4 unless given, as :mod:`benchmark.restore_thresholds` makes them; the benchmark's cells use
+1 to 4 unless given, as :mod:`tools.restore_thresholds` makes them; the benchmark's cells use
 seed 0, and only their held-out test views are ever reported), each scene's
 seven settings and its clean views, trains ``nimbus`` (tiny preset) four times: CSM on or off
 crossed with PLM on or off (GGS on when either is, as ``auto`` does), with the first of
@@ -68,7 +68,7 @@ from typing import Sequence
 
 import numpy as np
 
-from benchmark.restore_thresholds import SCENES, VALIDATION_SEED, prepare
+from tools.restore_thresholds import SCENES, VALIDATION_SEED, prepare
 from nimbus.cli_util import run_cli
 
 #: A component is needed where forcing it on gains at least this much test PSNR (dB).
@@ -585,7 +585,7 @@ def parse_seeds(text: str, flag: str = "--seeds", least: int = 0) -> list[int]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmark.auto_thresholds", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m tools.auto_thresholds", description=__doc__.split("\n")[0])
     parser.add_argument("--root", default=None, help="where the scenes are (made): default auto-validation, or "
                         "auto-report with --report")
     parser.add_argument("--sizes", default="tiny", help="built-in scene sizes, comma-separated")

@@ -1,6 +1,6 @@
 """The validation data behind ``restorer=auto``'s thresholds (:mod:`nimbus.restore`), and what it shows.
 
-    python -m benchmark.restore_thresholds [--root DIR] [--sizes tiny,small]
+    python -m tools.restore_thresholds [--root DIR] [--sizes tiny,small]
 
 Renders the built-in scenes with scene seed :data:`VALIDATION_SEED` and degrades them with the
 same synthesis seed (the benchmark's cells use 0 for both, so no view scored there is seen
@@ -93,7 +93,7 @@ def _report(rows: list[dict], stat: str, components: str, threshold: float) -> s
 def main(argv: list[str] | None = None) -> int:
     from nimbus.restore import HAZE_DARK_MEAN, PARTICLE_SHARE
 
-    parser = argparse.ArgumentParser(prog="python -m benchmark.restore_thresholds", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m tools.restore_thresholds", description=__doc__.split("\n")[0])
     parser.add_argument("--root", default="restore-validation", help="where the validation scenes are (made)")
     parser.add_argument("--sizes", default="tiny,small", help="built-in scene sizes, comma-separated")
     args = parser.parse_args(argv)

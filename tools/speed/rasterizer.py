@@ -2,8 +2,8 @@
 
 Usage::
 
-    python -m benchmark.speed.rasterizer [--backends torch cpp] [--sizes small medium large] [--repeats 3]
-                                         [--threads 1 2]
+    python -m tools.speed.rasterizer [--backends torch cpp] [--sizes small medium large] [--repeats 3]
+                                     [--threads 1 2]
 
 One row per (size, backend, threads): Gaussians visible, tile intersections, mean pixel alpha,
 forward / backward / total wall milliseconds of ``rasterize()`` (median of the repeats, after
@@ -25,7 +25,7 @@ The scene is random but shaped like a trained one: N Gaussians uniform over the 
 standard deviations log-uniform in 0.7..6 px (3-sigma radii about 2..18 px, so deep
 pixels have ~100 Gaussians in their tile lists), half of them faint (opacity 0.05..0.5)
 and half strong (0.5..0.99) so most pixels saturate after a few tens, SH degree 3.
-Same distribution as ``benchmark.speed.composite_cpp``; 16 px tiles; float32.
+Same distribution as ``tools.speed.composite_cpp``; 16 px tiles; float32.
 
 On a machine shared with other busy processes, OpenMP's default spin-waiting makes
 torch's multi-threaded ops erratic (10x slow-downs seen on 2 cores); run with

@@ -15,8 +15,8 @@ within 5 % of it), ``median rel. error`` against the exact map, and seconds.
 
 Run (the table in the README and the issue's closing note)::
 
-    python -m benchmark.speed.depth --scenes garden,street,tabletop --sizes tiny --iterations 300,600,1000
-    python -m benchmark.speed.depth --scenes garden,street,tabletop --sizes small --iterations 600
+    python -m tools.speed.depth --scenes garden,street,tabletop --sizes tiny --iterations 300,600,1000
+    python -m tools.speed.depth --scenes garden,street,tabletop --sizes small --iterations 600
 
 Timings depend on the machine and its load (the development machine is shared); the fit runs on
 CUDA when torch sees a GPU.
@@ -33,6 +33,8 @@ import time
 import numpy as np
 import torch
 
+from benchmark.tables.model import Block, Column, Row, Table
+from benchmark.tables.writer import to_markdown
 from nimbus.data.builtin import list_scenes, render_builtin
 from weather_synth.depth import DepthConfig, DepthSource
 from weather_synth.depth_consistency import depth_consistency
@@ -78,14 +80,21 @@ def bench_scene(name: str, size: str, iterations: list[int], sources=SOURCES) ->
     return rows
 
 
+#: The table's columns after the scene (the row label).
+COLUMNS = (Column("size", "size", "size", align="left"), Column("views", "views", "views"),
+           Column("source", "source", "source", align="left"), Column("consistency", "consistency", "consistency", 3),
+           Column("within_5pct_of_exact", "within 5 % of exact", "within 5 % of exact", 3),
+           Column("median_rel_error", "median rel. error", "median rel. error", 3),
+           Column("seconds", "seconds", "seconds", 1))
+
+
 def format_table(rows: list[dict]) -> str:
-    """Markdown table of :func:`bench_scene` rows."""
-    lines = ["| scene | size | views | source | consistency | within 5 % of exact | median rel. error | seconds |",
-             "| --- | --- | ---: | --- | ---: | ---: | ---: | ---: |"]
-    for r in rows:
-        lines.append(f"| {r['scene']} | {r['size']} | {r['views']} | {r['source']} | {r['consistency']:.3f} | "
-                     f"{r['within_5pct_of_exact']:.3f} | {r['median_rel_error']:.3f} | {r['seconds']:.1f} |")
-    return "\n".join(lines)
+    """Markdown table of :func:`bench_scene` rows (through the benchmark's table writer)."""
+    table = Table("depth", "depth", "Depth sources", COLUMNS, [""],
+                  [Block([Row(r["scene"], {("", c.key): r[c.key] if c.key != "views" else float(r["views"])
+                                           for c in COLUMNS}) for r in rows], ranked=False)],
+                  lead=("scene",), group_heads=False)
+    return to_markdown(table)
 
 
 def main(argv=None) -> int:
@@ -104,7 +113,7 @@ def main(argv=None) -> int:
         for name in args.scenes.split(","):
             new = bench_scene(name, size, iterations, args.sources.split(","))
             rows += new
-            print("\n".join(format_table(new).splitlines()[2:]), file=sys.stderr, flush=True)  # progress
+            print("\n".join(format_table(new).splitlines()[4:-2]), file=sys.stderr, flush=True)  # progress: the rows
     print(format_table(rows))
     if args.json:
         with open(args.json, "w") as f:

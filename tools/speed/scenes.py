@@ -2,8 +2,8 @@
 
 Usage::
 
-    python -m benchmark.speed.scenes [--sizes tiny small standard] [--scenes garden street tabletop]
-                                     [--workers 2] [--reference-views 4]
+    python -m tools.speed.scenes [--sizes tiny small standard] [--scenes garden street tabletop]
+                                 [--workers 2] [--reference-views 4]
 
 Prints one row per (scene, size): views, image size, samples per pixel, render
 threads, total seconds of :func:`nimbus.data.builtin.render_builtin` (wall clock;

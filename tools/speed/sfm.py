@@ -2,8 +2,8 @@
 
 Usage::
 
-    python -m benchmark.speed.sfm [--scene garden] [--views 200,80,40,20] [--size 240x180]
-                                  [--cases self,prior] [--threads 1] [--train [--preset fast]] [--json OUT]
+    python -m tools.speed.sfm [--scene garden] [--views 200,80,40,20] [--size 240x180]
+                              [--cases self,prior] [--threads 1] [--train [--preset fast]] [--json OUT]
 
 For each view count N, renders N views of the scene's camera rig (the orbit for
 ``garden``: exact intrinsics and poses), writes the images only, and runs
