@@ -31,8 +31,6 @@ TOOLS = {
 }
 #: ``--help`` is rendered at this width whatever the terminal of the build.
 HELP_COLUMNS = 100
-#: Table folders without a page: ``tables/reference/`` only says where its files moved.
-SKIPPED_TABLE_FOLDERS = {"reference"}
 
 
 def _checkout_first() -> None:
@@ -111,8 +109,7 @@ def _table_pages() -> dict[str, Path]:
     pages = {"results/index.md": ROOT / "tables" / "README.md",
              "results/reference-data.md": ROOT / "benchmark" / "data" / "README.md"}
     for readme in sorted((ROOT / "tables").glob("*/README.md")):
-        if readme.parent.name not in SKIPPED_TABLE_FOLDERS:
-            pages[f"results/{readme.parent.name}.md"] = readme
+        pages[f"results/{readme.parent.name}.md"] = readme
     return pages
 
 

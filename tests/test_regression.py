@@ -2,7 +2,7 @@
 
 The first test runs :data:`benchmark.reference.REGRESSION_GRID` (tiny built-in scenes, a few
 weathers, NimbusGS and 3DGS, tiny preset, seed 0) and fails when a figure got worse than
-``tables/reference/regression_tiny.json`` by more than its tolerance or when the synthesised
+``benchmark/data/regression_tiny.json`` by more than its tolerance or when the synthesised
 data changed by content (more than one 8-bit level).  A deliberate change is recorded with
 ``nimbus-bench reference update --regression`` (the diff of the reference file shows in
 review).  ``NIMBUS_CPU_ISA=generic|avx2|avx512`` runs it with the compositing kernel forced to
