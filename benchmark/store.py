@@ -58,7 +58,7 @@ SCALAR_COLUMNS = (
     "cell_id", "scene", "size", "weather", "method", "preset", "seed", "status", "error",
     "psnr", "ssim", "lpips", "ssim_protocol", "lpips_net", "train_time_s", "peak_memory_mb",
     "num_gaussians", "num_params", "render_fps", "iterations", "config_hash", "input_sha256",
-    "started_at", "finished_at",
+    "started_at", "finished_at", "scene_path", "scene_hash",
 )
 # flock fails with these where the file system has no locking (an NFS mount with nolock, some FUSE).
 _NO_LOCKING = (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS)
@@ -93,12 +93,22 @@ def record_run_dir(root: str | os.PathLike, record: dict) -> Path:
     return Path(root) / run_dir
 
 
+#: The size of a scene read from a folder at full resolution (``images/``): its data is named after the folder alone.
+FOLDER_SIZE = "images"
+
+
+def data_name_of(scene: str, size: str) -> str:
+    """The name of a scene's data folders: ``<scene>-<size>`` (``garden-tiny``, ``bicycle-images_4``), or the
+    folder's name alone for a folder scene at full resolution (size :data:`FOLDER_SIZE`)."""
+    return scene if size == FOLDER_SIZE else f"{scene}-{size}"
+
+
 def record_data_name(record: dict) -> str:
-    """``<scene>-<size>`` of a record, the name of its data folders (``ROOT/data/<name>``, ``ROOT/scenes/<name>``);
-    each part must be a single file name (:func:`nimbus.utils.fs.single_name`), else NimbusError naming it."""
+    """:func:`data_name_of` a record, the name of its data folders (``ROOT/data/<name>``, ``ROOT/scenes/<name>``);
+    scene and size must each be a single file name (:func:`nimbus.utils.fs.single_name`), else NimbusError naming it."""
     where = f"{STORE_FILE} record {record.get('cell_id')!r}"
     with _edited_record():
-        return "-".join(single_name(record.get(k), f"{where}: {k!r}") for k in ("scene", "size"))
+        return data_name_of(*(single_name(record.get(k), f"{where}: {k!r}") for k in ("scene", "size")))
 
 
 @contextlib.contextmanager
@@ -383,6 +393,9 @@ def load_results(root: str | os.PathLike, latest: bool = True, status: str | Non
     if root.suffix == ".jsonl":
         store.path = root
     recs = list(store.latest().values()) if latest else store.records()
+    from benchmark.scene_sources import check_scene_hashes
+
+    check_scene_hashes(recs, str(store.path))
     if status is not None:
         recs = [r for r in recs if r.get("status") == status]
     rows = [{**{c: r.get(c) for c in SCALAR_COLUMNS}, "per_view": r.get("per_view"), "record": r} for r in recs]
