@@ -261,7 +261,7 @@ def prepare_data(root: str | os.PathLike, cells: Iterable[Cell], progress: bool 
     prepared under its data lock: a second run waits for the first, then finds the data
     there, instead of replacing folders the first one's cells are reading.
     """
-    from benchmark.scene_sources import BUILTIN, load_source, prepare_source
+    from benchmark.scene_sources import BUILTIN, CAPTURE_DEPTH, TREE, load_source, prepare_source
     from weather_synth.config import protocol_config
     from weather_synth.dataset import MANIFEST
 
@@ -288,22 +288,29 @@ def prepare_data(root: str | os.PathLike, cells: Iterable[Cell], progress: bool 
         try:
             clean = scene_dir(root, key)
             source = load_source(root, key.data_name)
-            if source is not None and source.kind != BUILTIN:
-                prepare_source(root, source, families, clean,
-                               lambda protocol: family_dir(root, key.data_name, protocol), log, progress)
-                continue
-            if log and not (clean / "manifest.json").is_file():
-                log(f"rendering built-in scene {key.scene} ({key.size}) -> {clean}")
-            write_clean_scene(key.scene, key.size, clean, progress=progress)
+            builtin = source is None or source.kind == BUILTIN
+            if not builtin:
+                prepare_source(root, source, families.get(SYNTH_PROTOCOL, []), clean,
+                               family_dir(root, key.data_name, SYNTH_PROTOCOL), log)
+                if source.kind == TREE:
+                    continue
+            else:
+                if log and not (clean / "manifest.json").is_file():
+                    log(f"rendering built-in scene {key.scene} ({key.size}) -> {clean}")
+                write_clean_scene(key.scene, key.size, clean, progress=progress)
             for protocol, weathers in families.items():
                 out = family_dir(root, key.data_name, protocol)
                 missing = [w for w in weathers if not (out / w / MANIFEST).is_file()]
                 if missing:
+                    config = protocol_config(protocol, SYNTH_SEED)
+                    if not builtin:  # a capture: its own depth maps if it has them, else a quick fit
+                        config = dataclasses.replace(config, depth=dataclasses.replace(config.depth,
+                                                                                       source=CAPTURE_DEPTH))
                     if log:
                         family = "" if protocol == SYNTH_PROTOCOL else f" ({protocol} protocol)"
                         log(f"synthesising {', '.join(missing)}{family} for {key.data_name} -> {out}")
-                    synthesize(clean, out, missing, protocol_config(protocol, SYNTH_SEED), progress=progress,
-                               source=f"builtin:{key.scene}:{key.size}")
+                    synthesize(clean, out, missing, config, progress=progress,
+                               source=f"builtin:{key.scene}:{key.size}" if builtin else source.path)
         finally:
             lock.release()
 

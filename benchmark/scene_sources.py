@@ -27,7 +27,7 @@ A tree is scored against its ``clean/`` images as given: each of its settings is
 the benchmark root.  Tables and reports name an external scene by its folder name; its records
 carry ``scene_path`` (the resolved folder given: the capture, the photo folder or the tree) and
 ``scene_hash`` (:func:`scene_hash`), and a root refuses a second scene of the same name with
-another hash (:func:`register_sources`).
+another hash (:func:`register_sources`, :func:`benchmark.store.check_scene_hashes`).
 """
 
 from __future__ import annotations
@@ -329,21 +329,6 @@ def register_sources(root: str | os.PathLike, sources: Sequence[SceneSource]) ->
             atomic_write_json(source_file(root, s.data_name), s.to_dict())
 
 
-def check_scene_hashes(records: Iterable[dict], where: str) -> None:
-    """NimbusError when two records name one scene (name and size) with different ``scene_hash``."""
-    seen: dict[str, tuple[str, str]] = {}
-    for rec in records:
-        h = rec.get("scene_hash")
-        if not h:
-            continue
-        key = f"{rec.get('scene')}-{rec.get('size')}"
-        if key in seen and seen[key][0] != h:
-            raise NimbusError(f"{where} mixes two scenes named {rec.get('scene')!r} with different content "
-                              f"({seen[key][1]}, hash {seen[key][0][:12]}; {rec.get('scene_path')}, hash {h[:12]}); "
-                              "delete one scene's records or keep them in separate roots")
-        seen.setdefault(key, (h, rec.get("scene_path", "")))
-
-
 def builtin_fields(root: str | os.PathLike, data_name: str) -> dict:
     """``scene_path`` / ``scene_hash`` of a rendered built-in scene (``ROOT/scenes/<data_name>``)."""
     folder = (Path(root) / "scenes" / data_name).resolve()
@@ -351,24 +336,22 @@ def builtin_fields(root: str | os.PathLike, data_name: str) -> dict:
 
 
 # --- preparing the data ---------------------------------------------------------------------------
-def prepare_source(root: Path, source: SceneSource, families: dict[str, list[str]], clean: Path,
-                   family_dir: Callable[[str], Path], log: Callable[[str], None] | None, progress: bool) -> None:
-    """Make the clean scene ``clean`` and the setting folders of an external source.
+def prepare_source(root: Path, source: SceneSource, settings: Sequence[str], clean: Path,
+                   family_out: Path, log: Callable[[str], None] | None) -> None:
+    """Make the clean scene ``clean`` of an external source and, for a tree, its setting folders
+    ``family_out/<SETTING>`` (the default family: a tree's settings as given).
 
-    ``families`` maps a synthesis protocol to its setting names; ``family_dir(protocol)`` is
-    their folder.  A tree has the default family only (its settings as given).  Called under the
-    scene's data lock by :func:`benchmark.cell.prepare_data`; each folder is written atomically,
-    and what is already there is kept.
+    A capture's degraded settings are synthesised by the caller from ``clean``
+    (:func:`benchmark.cell.prepare_data`, depth :data:`CAPTURE_DEPTH`).  Called under the scene's data
+    lock; each folder is written atomically, and what is already there is kept.
     """
-    from benchmark.cell import SYNTH_PROTOCOL
-    from weather_synth.dataset import MANIFEST
-
     say = log or (lambda _m: None)
     if source.kind == TREE:
         available = dict(source.settings)
-        for s in families.get(SYNTH_PROTOCOL, []):
-            out = family_dir(SYNTH_PROTOCOL) / s
+        for s in settings:
+            out = family_out / s
             if not (out / LINKED).is_file():
+                say(f"copying setting {s} of {source.name} ({available[s]}) -> {out}")
                 _copy_setting(Path(available[s]), out, source)
         if not (clean / "manifest.json").is_file():
             first = Path(available[sorted(available)[0]])  # every setting has the same views and clean images
@@ -381,21 +364,6 @@ def prepare_source(root: Path, source: SceneSource, families: dict[str, list[str
     if not (clean / "manifest.json").is_file():
         say(f"copying {scene_dir}/{_image_folder(source.downscale)} as the clean scene -> {clean}")
         _write_capture_clean(scene_dir, source, clean)
-    for protocol, settings in families.items():
-        out = family_dir(protocol)
-        missing = [s for s in settings if not (out / s / MANIFEST).is_file()]
-        if not missing:
-            continue
-        from dataclasses import replace
-
-        from benchmark.cell import SYNTH_SEED, synthesize
-        from weather_synth.config import protocol_config
-
-        config = protocol_config(protocol, SYNTH_SEED)
-        config = replace(config, depth=replace(config.depth, source=CAPTURE_DEPTH))
-        say(f"synthesising {', '.join(missing)} ({protocol} protocol) for {source.data_name} "
-            f"(depth {CAPTURE_DEPTH}) -> {out}")
-        synthesize(clean, out, missing, config, progress=progress, source=source.path)
 
 
 def _manifest_of(scene, source: str) -> dict:

@@ -46,7 +46,7 @@ import warnings
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Iterator
+from typing import Iterable, Iterator
 
 from nimbus.errors import NimbusError
 from nimbus.utils.fs import confined_path, single_name
@@ -367,6 +367,21 @@ def _read_lines(path: Path) -> Iterator[dict]:
         yield rec
 
 
+def check_scene_hashes(records: Iterable[dict], where: str) -> None:
+    """NimbusError when two records name one scene (name and size) with different ``scene_hash``."""
+    seen: dict[str, tuple[str, str]] = {}
+    for rec in records:
+        h = rec.get("scene_hash")
+        if not h:
+            continue
+        key = data_name_of(rec.get("scene"), rec.get("size"))
+        if key in seen and seen[key][0] != h:
+            raise NimbusError(f"{where} mixes two scenes named {rec.get('scene')!r} with different content "
+                              f"({seen[key][1]}, hash {seen[key][0][:12]}; {rec.get('scene_path')}, hash {h[:12]}); "
+                              "delete one scene's records or keep them in separate roots")
+        seen.setdefault(key, (h, rec.get("scene_path", "")))
+
+
 def load_results(root: str | os.PathLike, latest: bool = True, status: str | None = None):
     """The store as a pandas DataFrame, one row per record.
 
@@ -393,8 +408,6 @@ def load_results(root: str | os.PathLike, latest: bool = True, status: str | Non
     if root.suffix == ".jsonl":
         store.path = root
     recs = list(store.latest().values()) if latest else store.records()
-    from benchmark.scene_sources import check_scene_hashes
-
     check_scene_hashes(recs, str(store.path))
     if status is not None:
         recs = [r for r in recs if r.get("status") == status]

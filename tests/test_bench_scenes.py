@@ -17,8 +17,8 @@ import pytest
 from benchmark.cell import synthesize, write_clean_scene
 from benchmark.cli import TOOL
 from benchmark.grid import InlineExecutor
-from benchmark.scene_sources import check_scene_hashes, resolve_scenes, scene_hash, setting_from_folder
-from benchmark.store import ResultsStore, load_results
+from benchmark.scene_sources import resolve_scenes, scene_hash, setting_from_folder
+from benchmark.store import ResultsStore, check_scene_hashes, load_results
 from nimbus.cli_util import run_cli
 from nimbus.data.images import read_image
 from nimbus.errors import NimbusError
