@@ -202,8 +202,8 @@ def resolve_scenes(items: Sequence[str], size: str, downscale: int = 1,
                    log: Callable[[str], None] | None = None) -> list[SceneSource]:
     """The :class:`SceneSource` of each ``--scenes`` item (a tree in the authors' layout gives one per scene).
 
-    An item is a built-in scene name unless it contains a path separator or names an existing
-    folder.  ``size`` is the built-in scenes' size; ``downscale`` picks ``images_<N>`` of scene and
+    An item is a built-in scene name when it is one (without a path separator: ``./garden`` is a
+    folder), else a folder.  ``size`` is the built-in scenes' size; ``downscale`` picks ``images_<N>`` of scene and
     photo folders (a tree is read as it is: ``images/`` and ``clean/``).
 
     Raises
@@ -220,11 +220,11 @@ def resolve_scenes(items: Sequence[str], size: str, downscale: int = 1,
     out: list[SceneSource] = []
     for item in items:
         path = Path(item).expanduser()
+        if os.sep not in item and item in list_scenes():  # a folder of that name in the working directory: ./NAME
+            get_size(size)
+            out.append(SceneSource(item, BUILTIN, size))
+            continue
         if os.sep not in item and not path.is_dir():
-            if item in list_scenes():
-                get_size(size)
-                out.append(SceneSource(item, BUILTIN, size))
-                continue
             get_scene(item)  # the unknown-name error, listing the built-in scenes
         if not path.exists():
             raise NimbusError(f"--scenes: {item} does not exist; give a built-in scene ({', '.join(list_scenes())}) "

@@ -64,6 +64,33 @@ def test_setting_folder_names():
     assert setting_from_folder("input") is None and setting_from_folder("clean") is None
 
 
+def test_what_each_folder_is(data, tmp_path, monkeypatch):
+    clean, tree = data
+    ours = clean.parent / "ours"  # what nimbus-synth degrade wrote
+    (src,) = resolve_scenes([str(ours)], "tiny")
+    assert (src.kind, src.name, src.size, [s for s, _ in src.settings]) == ("tree", "ours", "images", ["H", "H+R"])
+    (src,) = resolve_scenes([str(tree)], "tiny")
+    assert (src.kind, src.name, dict(src.settings)) == ("tree", "garden", {
+        "H": str(tree.resolve() / "haze" / "garden"), "H+R": str(tree.resolve() / "haze_rain" / "garden")})
+    (src,) = resolve_scenes([str(clean)], "tiny")
+    assert (src.kind, src.name, src.data_name, src.path) == ("capture", "mygarden", "mygarden", str(clean.resolve()))
+    photos = tmp_path / "photos"
+    shutil.copytree(clean / "images", photos)
+    assert resolve_scenes([str(photos)], "tiny")[0].kind == "photos"
+    assert resolve_scenes(["garden"], "small")[0].data_name == "garden-small"
+    monkeypatch.chdir(clean.parent)
+    assert resolve_scenes(["mygarden"], "tiny")[0].kind == "capture"  # a folder in the working directory
+    with pytest.raises(NimbusError, match="has no images_2/"):
+        resolve_scenes([str(clean)], "tiny", downscale=2)
+    shutil.copytree(clean, tmp_path / "mygarden")
+    (tmp_path / "mygarden" / "test_list.txt").write_text("000.png\n")
+    with pytest.raises(NimbusError, match="two different scenes 'mygarden'"):
+        resolve_scenes([str(clean), str(tmp_path / "mygarden")], "tiny")
+    with pytest.raises(NimbusError, match="neither a scene folder"):
+        resolve_scenes([str(tmp_path / "mygarden" / "sparse")], "tiny")
+
+
+@pytest.mark.slow
 def test_an_authors_tree_runs_through_run_tables_and_report(data, tmp_path, capsys):
     _, tree = data
     before = _files(tree)
