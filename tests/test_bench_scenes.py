@@ -176,3 +176,14 @@ def test_a_store_refuses_two_scenes_of_one_name(data, tmp_path, capsys):
     with pytest.raises(NimbusError, match="mixes two scenes named 'mygarden'"):
         load_results(root)
     check_scene_hashes(ResultsStore(root).records()[:1], "one record")  # one scene alone is fine
+
+
+@pytest.mark.parametrize("scenes, message", [
+    ("/no/such/folder", "does not exist"),
+    ("nosuchscene", "unknown"),
+])
+def test_a_bad_scene_is_one_clear_error(scenes, message, tmp_path, capsys):
+    assert run_cli(TOOL.run, RUN + ["--scenes", scenes, "--root", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error:") and message in err and "Traceback" not in err
+    assert not (tmp_path / "r").exists()
