@@ -85,7 +85,8 @@ class Cell:
     Attributes
     ----------
     scene : str
-        Built-in scene name (``garden``, ``street``, ``tabletop``).
+        Built-in scene name (``garden``, ``street``, ``tabletop``), or the folder name of a scene read from a
+        folder (:mod:`benchmark.scene_sources`).
     weather : str
         Weather setting name (``H``, ``R+S``, ...), ``@PROTOCOL`` for a setting of another synthesis
         protocol's family (``H@physical``; :func:`weather_synth.settings.parse_family_setting`), or
@@ -97,7 +98,8 @@ class Cell:
     seed : int
         Training seed (the data's seeds are fixed).
     size : str
-        Built-in scene size (``tiny``, ``small``, ``standard``).
+        Built-in scene size (``tiny``, ``small``, ``standard``); ``images`` / ``images_<N>`` (the image folder read)
+        for a scene read from a folder.
     overrides : tuple of (key, value)
         ``--set`` config overrides, sorted.
     """
@@ -120,7 +122,10 @@ class Cell:
 
     @property
     def data_name(self) -> str:
-        return f"{self.scene}-{self.size}"
+        """Name of its data folders (:func:`benchmark.store.data_name_of`): ``garden-tiny``, or a folder's name."""
+        from benchmark.store import data_name_of
+
+        return data_name_of(self.scene, self.size)
 
     @property
     def is_ceiling(self) -> bool:
@@ -157,12 +162,22 @@ class CellOptions:
         torch CPU threads in the worker (None: leave torch's default).
     device : str or None
         torch device for training (None: CUDA when available, else CPU).
+    eval_protocol : str
+        :data:`benchmark.metrics.EVAL_PROTOCOLS` name: ``default`` (8-bit round trip) or ``paper``
+        (float renders, saved as ``renders_float/<split>/<stem>.npy`` in the run folder).
     """
 
     ssim_protocol: str = "3dgs"
     lpips_net: str | None = "vgg"
     threads: int | None = None
     device: str | None = None
+    eval_protocol: str = "default"
+
+    @property
+    def quantize(self) -> bool:
+        from benchmark.metrics import get_eval_protocol
+
+        return get_eval_protocol(self.eval_protocol).quantize
 
 
 # --- data ----------------------------------------------------------------------------------
@@ -182,6 +197,16 @@ def data_dir(root: Path, cell: Cell) -> Path:
         return scene_dir(root, cell)
     family = parse_family_setting(cell.weather)
     return family_dir(root, cell.data_name, family.protocol) / family.setting.name
+
+
+def data_manifest(data: Path) -> Path:
+    """The file that says a data folder is complete: its ``manifest.json``, or for a setting copied from a user's
+    dataset tree its :data:`~benchmark.scene_sources.LINKED` file (the record's ``input_sha256`` is its hash)."""
+    from benchmark.scene_sources import LINKED
+    from weather_synth.dataset import MANIFEST
+
+    data = Path(data)
+    return data / LINKED if (data / LINKED).is_file() else data / MANIFEST
 
 
 def run_dir(root: Path, cell: Cell) -> Path:
@@ -227,13 +252,16 @@ def prepare_data(root: str | os.PathLike, cells: Iterable[Cell], progress: bool 
                  log: Callable[[str], None] | None = None) -> None:
     """Render the clean scenes and synthesise the degraded settings the cells need and the root lacks.
 
-    A clean-ceiling cell needs the clean scene only.
+    A clean-ceiling cell needs the clean scene only.  A scene the root records a source of
+    (``ROOT/sources/``: a scene folder, photo folder or dataset tree) is prepared from it
+    (:func:`benchmark.scene_sources.prepare_source`).
 
     Both steps write atomically (a folder appears only when complete) with fixed seeds, so a
     run interrupted here resumes by simply doing what is still missing.  Each scene's data is
     prepared under its data lock: a second run waits for the first, then finds the data
     there, instead of replacing folders the first one's cells are reading.
     """
+    from benchmark.scene_sources import BUILTIN, CAPTURE_DEPTH, TREE, load_source, prepare_source
     from weather_synth.config import protocol_config
     from weather_synth.dataset import MANIFEST
 
@@ -259,18 +287,30 @@ def prepare_data(root: str | os.PathLike, cells: Iterable[Cell], progress: bool 
             lock.acquire(wait=True)
         try:
             clean = scene_dir(root, key)
-            if log and not (clean / "manifest.json").is_file():
-                log(f"rendering built-in scene {key.scene} ({key.size}) -> {clean}")
-            write_clean_scene(key.scene, key.size, clean, progress=progress)
+            source = load_source(root, key.data_name)
+            builtin = source is None or source.kind == BUILTIN
+            if not builtin:
+                prepare_source(root, source, families.get(SYNTH_PROTOCOL, []), clean,
+                               family_dir(root, key.data_name, SYNTH_PROTOCOL), log)
+                if source.kind == TREE:
+                    continue
+            else:
+                if log and not (clean / "manifest.json").is_file():
+                    log(f"rendering built-in scene {key.scene} ({key.size}) -> {clean}")
+                write_clean_scene(key.scene, key.size, clean, progress=progress)
             for protocol, weathers in families.items():
                 out = family_dir(root, key.data_name, protocol)
                 missing = [w for w in weathers if not (out / w / MANIFEST).is_file()]
                 if missing:
+                    config = protocol_config(protocol, SYNTH_SEED)
+                    if not builtin:  # a capture: its own depth maps if it has them, else a quick fit
+                        config = dataclasses.replace(config, depth=dataclasses.replace(config.depth,
+                                                                                       source=CAPTURE_DEPTH))
                     if log:
                         family = "" if protocol == SYNTH_PROTOCOL else f" ({protocol} protocol)"
                         log(f"synthesising {', '.join(missing)}{family} for {key.data_name} -> {out}")
-                    synthesize(clean, out, missing, protocol_config(protocol, SYNTH_SEED), progress=progress,
-                               source=f"builtin:{key.scene}:{key.size}")
+                    synthesize(clean, out, missing, config, progress=progress,
+                               source=f"builtin:{key.scene}:{key.size}" if builtin else source.path)
         finally:
             lock.release()
 
@@ -443,11 +483,35 @@ def warm_up(options: CellOptions) -> None:
         pass
 
 
-def score_run(run: Path, data: Path, results: dict, *, ssim_protocol: str, lpips_net, device: str | None) -> dict:
+#: Folder of a run's float renders (the paper protocol's predictions), beside ``renders/``.
+FLOAT_RENDERS = "renders_float"
+
+
+def save_float_renders(model, out: Path, split: str) -> None:
+    """Render ``split``'s views of a trained Runner as float32 ``out/renders_float/<split>/<stem>.npy``.
+
+    The views :meth:`nimbus.train.runner.Runner.evaluate` rendered as PNGs, without their 8-bit
+    rounding: what the paper protocol scores.
+    """
+    import numpy as np
+    import torch
+
+    views = model.scene.test_views if split == "test" else model.scene.train_views
+    folder = Path(out) / FLOAT_RENDERS / split
+    folder.mkdir(parents=True, exist_ok=True)
+    with torch.no_grad():
+        for view in views:
+            rgb = model.method.render(view.camera)["rgb"].clamp(0, 1).float().cpu().numpy()
+            np.save(folder / f"{view.stem}.npy", rgb, allow_pickle=False)
+
+
+def score_run(run: Path, data: Path, results: dict, *, ssim_protocol: str, lpips_net, device: str | None,
+              quantize: bool = True) -> dict:
     """Score a trained run's renders of its evaluation split against the ground truth of ``data``.
 
     ``data`` is a setting folder (``clean/`` holds the ground truth); ``lpips_net`` is a network
-    name, a loaded :class:`nimbus.metrics.LPIPS` or None.  A missing LPIPS is left to the
+    name, a loaded :class:`nimbus.metrics.LPIPS` or None.  ``quantize`` False scores the run's
+    float renders (:func:`save_float_renders`) without 8-bit rounding.  A missing LPIPS is left to the
     score's notes rather than warned about.  Returns :func:`benchmark.score.score_renders`'s dict.
     """
     from benchmark.score import score_renders
@@ -455,8 +519,8 @@ def score_run(run: Path, data: Path, results: dict, *, ssim_protocol: str, lpips
     split = results.get("eval_split", "test")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
-        return score_renders(Path(run) / "renders" / split, data, split=split, ssim_protocol=ssim_protocol,
-                             lpips_net=lpips_net, device=device)
+        return score_renders(Path(run) / ("renders" if quantize else FLOAT_RENDERS) / split, data, split=split,
+                             ssim_protocol=ssim_protocol, lpips_net=lpips_net, device=device, quantize=quantize)
 
 
 # --- one cell ----------------------------------------------------------------------------------
@@ -554,13 +618,12 @@ def _train_cell(cell: Cell, root: Path, options: CellOptions) -> dict:
     from nimbus.data.io import load_scene
     from nimbus.methods.registry import get_method
     from nimbus.train.run_folder import config_record
-    from weather_synth.dataset import MANIFEST
 
     if options.threads:
         torch.set_num_threads(int(options.threads))
     config = make_config(get_method(cell.method), cell.preset, dict(cell.overrides))
     data = data_dir(root, cell)
-    if not (data / MANIFEST).is_file():
+    if not data_manifest(data).is_file():
         raise NimbusError(f"{data} is missing; the grid runner prepares it before training (is ROOT shared "
                           "with the workers?)")
     final, partial = run_dir(root, cell), partial_dir(root, cell)
@@ -577,6 +640,8 @@ def _train_cell(cell: Cell, root: Path, options: CellOptions) -> dict:
         results, model = train_method(cell.method, scene, config, partial, seed=cell.seed,
                                       scene_path=str(data.resolve()), progress=False, device=options.device)
     num_params, source = _param_count(model, results, config)
+    if not options.quantize:
+        save_float_renders(model, partial, results.get("eval_split", "test"))
     os.replace(partial, final)
     out = {
         "psnr_vs_input": results.get("psnr"), "ssim_vs_input": results.get("ssim"),
@@ -597,21 +662,20 @@ def _train_cell(cell: Cell, root: Path, options: CellOptions) -> dict:
 def _score_cell(record: dict, root: Path, options: CellOptions) -> dict:
     from benchmark.store import record_data_name, record_run_dir
     from nimbus.utils.fs import sha256_file
-    from weather_synth.dataset import MANIFEST
 
     record_data_name(record)  # the record's fields name folders: they must stay in the root
     data = data_dir(root, Cell.from_dict(record))
     final = record_run_dir(root, record)
     results = json.loads((final / "results.json").read_text())
     score = score_run(final, data, results, ssim_protocol=options.ssim_protocol, lpips_net=scoring_lpips(options),
-                      device=options.device)
+                      device=options.device, quantize=options.quantize)
     per_view = [{k: v[k] for k in ("name", "psnr", "ssim", "lpips")} for v in score["per_view"]]
     return {
         "psnr": score["mean"]["psnr"], "ssim": score["mean"]["ssim"], "lpips": score["mean"]["lpips"],
         "per_view": per_view, "ssim_protocol": options.ssim_protocol, "lpips_net": options.lpips_net,
-        "protocol": score["protocol"], "notes": score["notes"], "setup_command": score.get("setup_command"),
+        "protocol": score["protocol"], "eval_protocol": options.eval_protocol, "notes": score["notes"], "setup_command": score.get("setup_command"),
         "ground_truth": score["ground_truth"],
-        "input_sha256": sha256_file(data / MANIFEST),
+        "input_sha256": sha256_file(data_manifest(data)),
         "output_sha256": {v["name"]: v["pred_sha256"] for v in score["per_view"]},
     }
 

@@ -37,13 +37,16 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator, Protocol, Sequence
+from typing import TYPE_CHECKING, Callable, Iterator, Protocol, Sequence
 
 from benchmark.cell import (CEILING, CEILING_METHOD, DEFAULT_SIZE, Cell, CellOptions, error_record, make_config,
                             prepare_data, run_cell, utc_now)
-from benchmark.store import FileLock, ResultsStore
+from benchmark.store import FileLock, ResultsStore, data_name_of
 from nimbus.errors import NimbusError
 from nimbus.utils.cpus import usable_cpus
+
+if TYPE_CHECKING:
+    from benchmark.scene_sources import SceneSource
 
 #: Methods of the default benchmark, in table order (those not registered are skipped): NimbusGS, plain 3DGS,
 #: and the two-stage restore-then-3DGS baseline.
@@ -79,10 +82,14 @@ def split_names(spec: str, what: str) -> list[str]:
     return out
 
 
-def build_cells(scenes: Sequence[str], weathers: Sequence[str], methods: Sequence[str], presets: Sequence[str],
-                seeds: Sequence[int], size: str = DEFAULT_SIZE, overrides: dict[str, str] | None = None,
-                ceiling: bool = False) -> list[Cell]:
+def build_cells(scenes: Sequence["str | SceneSource"], weathers: Sequence[str], methods: Sequence[str],
+                presets: Sequence[str], seeds: Sequence[int], size: str = DEFAULT_SIZE,
+                overrides: dict[str, str] | None = None, ceiling: bool = False) -> list[Cell]:
     """Every combination, in table order (scene, weather, method, preset, seed); validated before any work.
+
+    ``scenes`` are built-in names (at ``size``) or :class:`~benchmark.scene_sources.SceneSource`
+    (:func:`~benchmark.scene_sources.resolve_scenes`); a degraded dataset tree gets the cells of the
+    weathers it has (its settings as given: the default family only).
 
     With ``ceiling``, each scene's cells are preceded by its clean-ceiling cells
     (:data:`~benchmark.cell.CEILING`): 3DGS on the clean scene, one per preset and seed, with the
@@ -92,16 +99,20 @@ def build_cells(scenes: Sequence[str], weathers: Sequence[str], methods: Sequenc
     ------
     NimbusError
         Unknown scene, size, weather (``H+R``, ``H+R@physical``: :mod:`weather_synth.settings`), method
-        or preset, a negative seed, or an override the method's config (or, with ``ceiling``, 3DGS's) does
-        not have.
+        or preset, a negative seed, an override the method's config (or, with ``ceiling``, 3DGS's) does
+        not have, or a dataset tree with none of the weathers (or asked for another protocol family).
     """
+    from benchmark.scene_sources import TREE, SceneSource
     from nimbus.data.builtin import get_scene, get_size
     from nimbus.methods.registry import get_method
     from weather_synth.settings import parse_family_setting
 
-    get_size(size)
-    for s in scenes:
-        get_scene(s)
+    sources = [s if isinstance(s, SceneSource) else SceneSource(s, "builtin", size) for s in scenes]
+    if any(s.kind == "builtin" for s in sources):
+        get_size(size)
+    for s in sources:
+        if s.kind == "builtin":
+            get_scene(s.name)
     weathers = [parse_family_setting(w).name for w in weathers]
     for seed in seeds:
         if seed < 0:
@@ -117,11 +128,27 @@ def build_cells(scenes: Sequence[str], weathers: Sequence[str], methods: Sequenc
             except NimbusError as e:
                 raise NimbusError(f"{e} (the clean ceiling trains {CEILING_METHOD} with the grid's preset and --set; "
                                   "pass --no-ceiling to run without it)") from None
+
+    def scene_weathers(src: SceneSource) -> list[str]:
+        if src.kind != TREE:
+            return weathers
+        has = dict(src.settings)
+        other = [w for w in weathers if "@" in w]
+        if other:
+            raise NimbusError(f"{src.path}: a degraded dataset is scored as given, in its own weather; "
+                              f"{', '.join(other)} names another synthesis family: drop it for this scene")
+        mine = [w for w in weathers if w in has]
+        if not mine:
+            raise NimbusError(f"{src.path}: scene {src.name} has none of the weathers {', '.join(weathers)}; it has "
+                              f"{', '.join(has)} (pass --weathers {','.join(has)} or all)")
+        return mine
+
     # A name or seed given twice is one cell: two copies of a cell would train into one run folder at once.
-    return list(dict.fromkeys(c for sc in scenes for c in [
-        *(Cell(sc, CEILING, CEILING_METHOD, p, int(seed), size, ov) for p in presets for seed in seeds if ceiling),
-        *(Cell(sc, w, m, p, int(seed), size, ov) for w in weathers for m in methods for p in presets
-          for seed in seeds)]))
+    return list(dict.fromkeys(c for src in sources for c in [
+        *(Cell(src.name, CEILING, CEILING_METHOD, p, int(seed), src.size, ov) for p in presets for seed in seeds
+          if ceiling),
+        *(Cell(src.name, w, m, p, int(seed), src.size, ov) for w in scene_weathers(src) for m in methods
+          for p in presets for seed in seeds)]))
 
 
 # --- executors -----------------------------------------------------------------------------------
@@ -239,12 +266,15 @@ def make_executor(name: str, jobs: int = 1, scheduler: str | None = None) -> Exe
 # --- command-line flags of the verbs that run cells (``run``, ``tradeoff``) ------------------------
 def add_run_arguments(p, jobs_help: str) -> None:
     """The flags that say where and how cells run and are scored, and how the run reports."""
+    from benchmark.metrics import EVAL_PROTOCOLS
     from nimbus.metrics import LPIPS_NETS, SSIM_PROTOCOLS
 
     p.add_argument("--executor", choices=("local", "dask"), default="local",
                    help="local: worker processes; dask: tasks on a Dask distributed cluster")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS", help="Dask scheduler address (with --executor dask)")
     p.add_argument("--jobs", type=int, default=1, help=jobs_help)
+    p.add_argument("--protocol", choices=tuple(EVAL_PROTOCOLS), default="default",
+                   help="; ".join(f"{k}: {v.summary}" for k, v in EVAL_PROTOCOLS.items()))
     p.add_argument("--ssim", choices=tuple(SSIM_PROTOCOLS), default="3dgs", help="SSIM protocol (3dgs: paper)")
     p.add_argument("--lpips", choices=LPIPS_NETS + ("none",), default="vgg", help="LPIPS network (vgg: paper)")
     p.add_argument("--device", default=None, help="torch device for training (default: cuda if available, else cpu)")
@@ -259,9 +289,16 @@ def executor_from_args(args) -> Executor:
 
 
 def options_from_args(args) -> CellOptions:
-    """The :class:`CellOptions` :func:`add_run_arguments`' flags name."""
+    """The :class:`CellOptions` :func:`add_run_arguments`' flags name (``--protocol paper`` fixes SSIM and LPIPS)."""
+    from benchmark.metrics import get_eval_protocol
+
+    protocol = get_eval_protocol(getattr(args, "protocol", "default"))
+    for flag, fixed, given in (("--ssim", protocol.ssim, args.ssim), ("--lpips", protocol.lpips, args.lpips)):
+        if fixed is not None and given not in (fixed, "none"):  # none: leave LPIPS out (faster), said in the record
+            raise NimbusError(f"--protocol {protocol.name} scores with {flag} {fixed}; drop {flag} {given} "
+                              "(or use --protocol default)")
     return CellOptions(ssim_protocol=args.ssim, lpips_net=None if args.lpips == "none" else args.lpips,
-                       device=args.device)
+                       device=args.device, eval_protocol=protocol.name)
 
 
 def say_failed(outcome: "GridOutcome", root) -> None:
@@ -364,9 +401,11 @@ def run_grid(cells: Sequence[Cell], root: str | os.PathLike, executor: Executor 
         ran = []
         if todo:
             prepare_data(root, todo, progress=False, log=say)
+            scene_fields = {c.data_name: _scene_fields(root, c.data_name) for c in todo}
             records = executor.imap(todo, str(root), options)
             try:
                 for rec in records:
+                    rec = {**rec, **scene_fields.get(data_name_of(rec.get("scene"), rec.get("size")), {})}
                     store.append(rec)
                     lock = locks.pop(rec["cell_id"], None)
                     if lock is not None:  # only once its record is stored: a run that gets it then sees it done
@@ -385,6 +424,14 @@ def run_grid(cells: Sequence[Cell], root: str | os.PathLike, executor: Executor 
         if bar is not None:
             bar.close()
     return GridOutcome(ran, skipped, elsewhere)
+
+
+def _scene_fields(root: Path, data_name: str) -> dict:
+    """``scene_path`` and ``scene_hash`` of a scene of the root (:mod:`benchmark.scene_sources`)."""
+    from benchmark.scene_sources import builtin_fields, load_source
+
+    source = load_source(root, data_name)
+    return source.record_fields() if source is not None else builtin_fields(root, data_name)
 
 
 def _claim_cells(store: ResultsStore, cells: Sequence[Cell], rerun: bool,

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -19,6 +20,47 @@ from nimbus.errors import NimbusError
 from nimbus.metrics import (LPIPS, MASK_PROTOCOL, PSNR_PROTOCOL, SETUP_COMMAND, SSIM_PROTOCOLS, WeightsMissing,
                             get_ssim_protocol, mask_batch, peak_signal_noise_ratio, quantize_8bit,
                             structural_similarity)
+
+@dataclass(frozen=True)
+class EvalProtocol:
+    """A named way of scoring a benchmark's renders (``nimbus-bench run --protocol``).
+
+    Attributes
+    ----------
+    name : str
+    quantize : bool
+        8-bit round trip of renders and ground truth before every metric (renders scored as the PNGs
+        they are saved as); False scores float renders.
+    ssim : str or None
+        The SSIM protocol it fixes (None: ``--ssim`` chooses).
+    lpips : str or None
+        The LPIPS network it fixes (None: ``--lpips`` chooses).
+    summary : str
+    """
+
+    name: str
+    quantize: bool
+    ssim: str | None
+    lpips: str | None
+    summary: str
+
+
+#: The benchmark's evaluation protocols.  ``default`` is the benchmark's own (every committed table); ``paper`` is
+#: the evaluation of the 3DGS and NimbusGS papers' scripts: PSNR of the float render (no 8-bit rounding), the
+#: 3DGS SSIM (11x11 Gaussian window, sigma 1.5, zero padding) and LPIPS-VGG.
+EVAL_PROTOCOLS = {
+    "default": EvalProtocol("default", True, None, None,
+                            "renders and ground truth through an 8-bit round trip; --ssim and --lpips choose"),
+    "paper": EvalProtocol("paper", False, "3dgs", "vgg",
+                          "the papers' evaluation: PSNR on float renders (no 8-bit rounding), 3DGS SSIM, LPIPS-VGG"),
+}
+
+
+def get_eval_protocol(name: str) -> EvalProtocol:
+    if name not in EVAL_PROTOCOLS:
+        raise NimbusError(f"unknown evaluation protocol {name!r}; use one of {', '.join(EVAL_PROTOCOLS)}")
+    return EVAL_PROTOCOLS[name]
+
 
 class Scorer:
     """PSNR, SSIM and LPIPS of image pairs with fixed protocols; reuse it across calls (LPIPS loads once).

@@ -38,6 +38,7 @@ SPLITS = ("test", "train", "all")
 CLEAN_DIR = "clean"        # ground-truth folder of a weather_synth setting folder
 NERFBASELINES_DIR = "color"  # where nerfbaselines writes its renders
 SCORE_CHUNK = 8            # views read and scored at a time (bounds memory for large scenes)
+FLOAT_RENDER_SUFFIX = ".npy"  # float32 (H, W, 3) renders in [0, 1], what the paper protocol scores
 
 
 # --- matching ----------------------------------------------------------------------------
@@ -119,10 +120,40 @@ def _renders(pred_dir: Path, views: list) -> tuple[list[Path], Path, int]:
     return found, pred_dir, len(index.files) - len(set(found))
 
 
+def _float_renders(pred_dir: Path, views: list) -> list[Path]:
+    """The float render (``<stem>.npy``) of each view, or NimbusError listing the views without one."""
+    found = [pred_dir / Path(v.name).with_suffix(FLOAT_RENDER_SUFFIX) for v in views]
+    missing = [v.name for v, p in zip(views, found) if not p.is_file()]
+    if missing:
+        raise NimbusError(f"{len(missing)} of {len(views)} views have no float render in {pred_dir}: "
+                          f"{format_names(missing)} (expected e.g. {found[0].name}); the paper protocol scores float "
+                          "renders, which nimbus-bench run --protocol paper saves beside the PNGs")
+    return found
+
+
+def read_float_render(path: Path) -> "np.ndarray":
+    """A float render (``.npy``, float32 (H, W, 3)); never unpickles."""
+    import numpy as np
+
+    img = np.load(path, allow_pickle=False)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise NimbusError(f"{path} is not a float render of shape (H, W, 3) (got {img.shape})")
+    return img.astype(np.float32, copy=False)
+
+
+def _size(path: Path) -> tuple[int, int]:
+    if path.suffix == FLOAT_RENDER_SUFFIX:
+        import numpy as np
+
+        shape = np.load(path, mmap_mode="r", allow_pickle=False).shape
+        return shape[1], shape[0]
+    return image_size(path)
+
+
 def _check_sizes(views: list, preds: list[Path], gts: list[Path]) -> None:
     bad = []
     for v, p, g in zip(views, preds, gts):
-        ps, gs = image_size(p), image_size(g)
+        ps, gs = _size(p), image_size(g)
         if ps != gs:
             bad.append(f"{p.name} is {ps[0]}x{ps[1]}, ground truth {gs[0]}x{gs[1]}")
     if bad:
@@ -134,7 +165,8 @@ def _check_sizes(views: list, preds: list[Path], gts: list[Path]) -> None:
 # --- scoring -----------------------------------------------------------------------------
 def score_renders(pred_dir: str | Path, scene_dir: str | Path, split: str = "test", ssim_protocol: str = "3dgs",
                   lpips_net: "str | LPIPS | None" = "vgg", gt_dir: str | Path | None = None, downscale: int = 1,
-                  device: str | None = None, progress: Callable[[int, int], None] | None = None) -> dict:
+                  device: str | None = None, progress: Callable[[int, int], None] | None = None,
+                  quantize: bool = True) -> dict:
     """Score the renders in ``pred_dir`` against the ground truth of a scene.
 
     Parameters
@@ -157,6 +189,10 @@ def score_renders(pred_dir: str | Path, scene_dir: str | Path, split: str = "tes
         LPIPS device (default CUDA when available, else CPU).
     progress : callable(done, total), optional
         Called after each chunk of views.
+    quantize : bool
+        True: the benchmark's default, both images through an 8-bit round trip (renders are
+        PNGs).  False: the paper's evaluation, float renders (``<stem>.npy`` in ``pred_dir``,
+        float32 (H, W, 3) in [0, 1]) against the ground truth as read, no rounding.
 
     Returns
     -------
@@ -171,15 +207,19 @@ def score_renders(pred_dir: str | Path, scene_dir: str | Path, split: str = "tes
     scene = load_scene(scene_dir, downscale=downscale)
     views = _select_views(scene, split)
     gts, gt_source = _ground_truth(scene, scene_dir, views, None if gt_dir is None else Path(gt_dir))
-    preds, pred_dir, unused = _renders(pred_dir, views)
+    if quantize:
+        preds, pred_dir, unused = _renders(pred_dir, views)
+    else:
+        preds, unused = _float_renders(pred_dir, views), 0
     _check_sizes(views, preds, gts)
+    read_pred = read_image if quantize else read_float_render
 
-    scorer = Scorer(ssim_protocol, lpips_net, device=device)
+    scorer = Scorer(ssim_protocol, lpips_net, quantize=quantize, device=device)
     values: dict[str, list] = {}
     for s in range(0, len(views), SCORE_CHUNK):
         chunk = slice(s, s + SCORE_CHUNK)
         # A view's validity mask (masks/, mask_path) limits its scores to the valid pixels.
-        part = scorer([read_image(p) for p in preds[chunk]], [read_image(g) for g in gts[chunk]],
+        part = scorer([read_pred(p) for p in preds[chunk]], [read_image(g) for g in gts[chunk]],
                       [view_mask(v) for v in views[chunk]])
         for k, v in part.items():
             values.setdefault(k, []).extend(v)

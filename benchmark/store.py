@@ -46,7 +46,7 @@ import warnings
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Iterator
+from typing import Iterable, Iterator
 
 from nimbus.errors import NimbusError
 from nimbus.utils.fs import confined_path, single_name
@@ -58,7 +58,7 @@ SCALAR_COLUMNS = (
     "cell_id", "scene", "size", "weather", "method", "preset", "seed", "status", "error",
     "psnr", "ssim", "lpips", "ssim_protocol", "lpips_net", "train_time_s", "peak_memory_mb",
     "num_gaussians", "num_params", "render_fps", "iterations", "config_hash", "input_sha256",
-    "started_at", "finished_at",
+    "started_at", "finished_at", "scene_path", "scene_hash",
 )
 # flock fails with these where the file system has no locking (an NFS mount with nolock, some FUSE).
 _NO_LOCKING = (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS)
@@ -93,12 +93,22 @@ def record_run_dir(root: str | os.PathLike, record: dict) -> Path:
     return Path(root) / run_dir
 
 
+#: The size of a scene read from a folder at full resolution (``images/``): its data is named after the folder alone.
+FOLDER_SIZE = "images"
+
+
+def data_name_of(scene: str, size: str) -> str:
+    """The name of a scene's data folders: ``<scene>-<size>`` (``garden-tiny``, ``bicycle-images_4``), or the
+    folder's name alone for a folder scene at full resolution (size :data:`FOLDER_SIZE`)."""
+    return scene if size == FOLDER_SIZE else f"{scene}-{size}"
+
+
 def record_data_name(record: dict) -> str:
-    """``<scene>-<size>`` of a record, the name of its data folders (``ROOT/data/<name>``, ``ROOT/scenes/<name>``);
-    each part must be a single file name (:func:`nimbus.utils.fs.single_name`), else NimbusError naming it."""
+    """:func:`data_name_of` a record, the name of its data folders (``ROOT/data/<name>``, ``ROOT/scenes/<name>``);
+    scene and size must each be a single file name (:func:`nimbus.utils.fs.single_name`), else NimbusError naming it."""
     where = f"{STORE_FILE} record {record.get('cell_id')!r}"
     with _edited_record():
-        return "-".join(single_name(record.get(k), f"{where}: {k!r}") for k in ("scene", "size"))
+        return data_name_of(*(single_name(record.get(k), f"{where}: {k!r}") for k in ("scene", "size")))
 
 
 @contextlib.contextmanager
@@ -357,6 +367,21 @@ def _read_lines(path: Path) -> Iterator[dict]:
         yield rec
 
 
+def check_scene_hashes(records: Iterable[dict], where: str) -> None:
+    """NimbusError when two records name one scene (name and size) with different ``scene_hash``."""
+    seen: dict[str, tuple[str, str]] = {}
+    for rec in records:
+        h = rec.get("scene_hash")
+        if not h:
+            continue
+        key = data_name_of(rec.get("scene"), rec.get("size"))
+        if key in seen and seen[key][0] != h:
+            raise NimbusError(f"{where} mixes two scenes named {rec.get('scene')!r} with different content "
+                              f"({seen[key][1]}, hash {seen[key][0][:12]}; {rec.get('scene_path')}, hash {h[:12]}); "
+                              "delete one scene's records or keep them in separate roots")
+        seen.setdefault(key, (h, rec.get("scene_path", "")))
+
+
 def load_results(root: str | os.PathLike, latest: bool = True, status: str | None = None):
     """The store as a pandas DataFrame, one row per record.
 
@@ -383,6 +408,7 @@ def load_results(root: str | os.PathLike, latest: bool = True, status: str | Non
     if root.suffix == ".jsonl":
         store.path = root
     recs = list(store.latest().values()) if latest else store.records()
+    check_scene_hashes(recs, str(store.path))
     if status is not None:
         recs = [r for r in recs if r.get("status") == status]
     rows = [{**{c: r.get(c) for c in SCALAR_COLUMNS}, "per_view": r.get("per_view"), "record": r} for r in recs]

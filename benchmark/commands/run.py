@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 import warnings
 
 from benchmark.cell import CEILING_METHOD, DEFAULT_PRESET, DEFAULT_SIZE
@@ -29,7 +30,14 @@ DEFAULT_ROOT = "bench_runs"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--scenes", default=None, help="comma list of built-in scenes (default: all of them)")
+    p.add_argument("--scenes", default=None,
+                   help="comma list of built-in scenes (default: all of them) and folders: a scene folder (COLMAP "
+                        "images/ + sparse/0, or transforms.json: degraded with the run's weathers, --depth auto), a "
+                        "photo folder (posed by SfM first, cached under ROOT/sfm), or a degraded dataset tree (ours, "
+                        "or the NimbusGS authors' layout: one folder per setting such as haze_rain/, one per scene "
+                        "inside, scored against its clean/); a folder's scene is named after the folder")
+    p.add_argument("--downscale", type=int, default=1,
+                   help="scene folders: train and score on images_<N>/ (Mip-NeRF360 layout) instead of images/")
     p.add_argument("--weathers", default="all",
                    help="comma list of settings (H, R, S, H+R, ...) or all, in the default (onerestore: beta and "
                         "airlight drawn per view) protocol; SETTING@physical (e.g. H@physical, all@physical) for "
@@ -38,7 +46,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="comma list of registered methods; default: nimbus, 3dgs and restore-3dgs (those registered)")
     p.add_argument("--preset", default=DEFAULT_PRESET, help="trainer preset(s), comma list: tiny, fast, paper")
     p.add_argument("--seeds", default="0", help="comma list of training seeds")
-    p.add_argument("--size", default=DEFAULT_SIZE, help="built-in scene size: tiny, small, standard")
+    p.add_argument("--size", default=DEFAULT_SIZE, help="built-in scene size: tiny, small, standard (built-in scenes only)")
     p.add_argument("--no-ceiling", action="store_true",
                    help="do not train the clean ceiling (3dgs on each scene's clean training views, one cell per scene "
                         "x preset x seed) that the tables give every method's gap to")
@@ -59,14 +67,32 @@ def _seeds(spec: str) -> list[int]:
     return [check_seed(s, "each of --seeds") for s in seeds]
 
 
+def _check_protocol(root: str, cells, protocol: str) -> None:
+    """Refuse a run whose cells the root already scored with another evaluation protocol (they would be skipped
+    and the table would mix the two)."""
+    from benchmark.store import ResultsStore
+
+    ids = {c.cell_id for c in cells}
+    other = {rec.get("eval_protocol", "default") for cid, rec in ResultsStore(root).latest().items()
+             if cid in ids and rec.get("status") == "ok"} - {protocol}
+    if other:
+        raise NimbusError(f"{root} already holds cells of this grid scored with --protocol {sorted(other)[0]}; "
+                          f"a root keeps one protocol: give --protocol {sorted(other)[0]} or another --root")
+
+
 def run(args: argparse.Namespace) -> int:
+    from benchmark.scene_sources import register_sources, resolve_scenes
+    from nimbus.utils.fs import check_output_dir
     from benchmark.store import load_results
     from benchmark.tables.summary import summary_text
     from nimbus.data.builtin import list_scenes
     from nimbus.config_set import parse_set_args
     from weather_synth.settings import parse_family_weather
 
-    scenes = split_names(args.scenes, "--scenes") if args.scenes else list_scenes()
+    items = split_names(args.scenes, "--scenes") if args.scenes else list_scenes()
+    if args.downscale < 1:
+        raise NimbusError(f"--downscale must be a positive integer (1, 2, 4, 8), got {args.downscale}")
+    scenes = resolve_scenes(items, args.size, args.downscale, log=lambda m: print(m, file=sys.stderr))
     weathers = [w.name for w in parse_family_weather(args.weathers)]
     methods, skipped = resolve_methods(args.methods)
     if skipped:
@@ -76,14 +102,19 @@ def run(args: argparse.Namespace) -> int:
     presets = split_names(args.preset, "--preset")
     seeds = _seeds(args.seeds)
     executor = executor_from_args(args)
+    options = options_from_args(args)
     cells = build_cells(scenes, weathers, methods, presets, seeds, args.size, parse_set_args(args.set),
                         ceiling=not args.no_ceiling)
     ceilings = sum(c.is_ceiling for c in cells)
-    print(f"{len(cells)} cell(s): {len(scenes)} scene(s) x {len(weathers)} weather(s) x {len(methods)} method(s) "
+    check_output_dir(Path(args.root), overwrite=True, flag="--root")  # before sources/ is written into it
+    _check_protocol(args.root, cells, options.eval_protocol)
+    register_sources(args.root, scenes)
+    n_weathers = len({c.weather for c in cells if not c.is_ceiling})
+    print(f"{len(cells)} cell(s): {len(scenes)} scene(s) x {n_weathers} weather(s) x {len(methods)} method(s) "
           f"x {len(presets)} preset(s) x {len(seeds)} seed(s)"
           + (f" + {ceilings} clean-ceiling cell(s) ({CEILING_METHOD} on the clean views)" if ceilings else "")
           + f" -> {args.root}", file=sys.stderr)
-    outcome = run_grid(cells, args.root, executor, options_from_args(args), rerun=args.rerun, progress=not args.quiet)
+    outcome = run_grid(cells, args.root, executor, options, rerun=args.rerun, progress=not args.quiet)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         df = load_results(args.root)
