@@ -9,7 +9,7 @@ entry in :data:`METHODS` (nothing registers itself on import)::
 NimbusGS's ablation variants are entries too: ``nimbus`` decides its components from the
 data (``components=auto``); the variants start from every component forced on
 (``nimbus-full``, as in the paper's ablations) and change one thing.  Each is also
-reachable as ``--method nimbus --set ...`` (see :mod:`nimbus.nimbusgs.config`).
+reachable as ``--method nimbus --set ...`` (see :mod:`nimbus.methods.nimbusgs.config`).
 ``nimbus-paper`` (:data:`PAPER`) is NimbusGS as the paper's text writes it: every
 component on and each of our departures from the paper set back.
 """
@@ -26,8 +26,8 @@ from nimbus.errors import NimbusError
 
 #: ``module:function`` of the 3DGS presets (``preset(name) -> TrainConfig``) and of NimbusGS's.
 GS_PRESETS = "nimbus.train.config:preset"
-NIMBUS_PRESETS = "nimbus.nimbusgs.config:preset"
-NIMBUS = "nimbus.methods.nimbusgs:NimbusGS"
+NIMBUS_PRESETS = "nimbus.methods.nimbusgs.config:preset"
+NIMBUS = "nimbus.methods.nimbusgs.method:NimbusGS"
 FULL = "csm,plm,ggs"
 
 
@@ -73,7 +73,7 @@ class MethodSpec:
 def _paper_m_init(k: int) -> Callable:
     """``m_init`` of the paper's M_init = ``k`` (iterations of its 30k schedule), scaled to the preset."""
     def m_init(config) -> int:
-        from nimbus.nimbusgs.config import paper_m_init
+        from nimbus.methods.nimbusgs.config import paper_m_init
 
         return paper_m_init(config, k)
 
@@ -85,7 +85,7 @@ def _nimbus(name: str, description: str, **changes) -> MethodSpec:
 
 
 #: ``nimbus-paper``: NimbusGS as the paper writes it (nimbusgs.tex: Method; supplementary Implementation
-#: Details), each of our departures (documented as "ours" in :class:`~nimbus.nimbusgs.config.NimbusConfig`)
+#: Details), each of our departures (documented as "ours" in :class:`~nimbus.methods.nimbusgs.config.NimbusConfig`)
 #: set back to the paper's statement.  The preset's schedule and resolution (iterations, M_init's share,
 #: Z_ref, grid size, K) are left as for ``nimbus``, so the two differ by these fields only; the ``paper``
 #: preset gives the paper's 4k + 26k, 128^3, K = 64 (see README "Where we depart from the paper").
