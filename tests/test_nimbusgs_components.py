@@ -656,3 +656,24 @@ def test_view_density_off_is_the_field_alone():
     assert "view_density" not in {g["name"] for g in medium.param_groups()}
     assert medium.state_dict()["view_log_density"] is None
     _medium(False).load_state_dict(medium.state_dict())
+
+
+def test_ablations_are_variants_of_one_registry_entry(capsys):
+    from nimbus.cli.train import main
+    from nimbus.methods.registry import ENTRIES, METHODS, NIMBUS_VARIANTS
+
+    assert [e.name for e in ENTRIES] == ["3dgs", "restore-3dgs", "robust-3dgs", "medium-3dgs", "nimbus"]
+    assert len(METHODS) == len(ENTRIES) + len(NIMBUS_VARIANTS)
+    for v in NIMBUS_VARIANTS:  # each variant is the nimbus entry's class and presets with its own changes
+        spec = METHODS[f"nimbus-{v.suffix}"]
+        assert spec.base == "nimbus" and spec.target == METHODS["nimbus"].target
+        config = spec.preset("tiny")
+        for key, value in v.changes.items():
+            assert getattr(config, key) == (value(METHODS["nimbus"].preset("tiny")) if callable(value) else value)
+    assert METHODS["nimbus-ggs-no-depth"].preset("tiny").components == "csm,plm,ggs"
+    with pytest.raises(SystemExit) as exit_:
+        main(["--method", "help"])
+    assert exit_.value.code == 0
+    listing = capsys.readouterr().out
+    assert all(name in listing for name in METHODS)
+    assert "\n  nimbus-minit-15k " in listing and "\nnimbus " in listing
