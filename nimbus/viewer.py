@@ -56,9 +56,9 @@ from nimbus.data import Camera
 from nimbus.data.camera import rotation_from_quaternion_wxyz
 from nimbus.data.images import to_uint8
 from nimbus.errors import NimbusError
-from nimbus.methods.nimbusgs import NimbusGS
-from nimbus.nimbusgs.degradation import Medium, compose
-from nimbus.nimbusgs.scattering import camera_rays
+from nimbus.methods.nimbusgs.method import NimbusGS
+from nimbus.methods.nimbusgs.degradation import Medium, compose
+from nimbus.methods.nimbusgs.scattering import camera_rays
 from nimbus.render.projection import covariance_3d
 from nimbus.render.sh import sh_to_rgb
 from nimbus.train.checkpoint import CHECKPOINT

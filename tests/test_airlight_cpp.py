@@ -9,7 +9,7 @@ import torch
 
 from nimbus.kernels import airlight as airlight_kernel
 from nimbus.kernels import march as march_kernel
-from nimbus.nimbusgs.airlight import NetworkAirlight
+from nimbus.methods.nimbusgs.airlight import NetworkAirlight
 
 
 @pytest.fixture(scope="module")

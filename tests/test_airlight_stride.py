@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from nimbus.data.camera import Camera
-from nimbus.nimbusgs.config import NimbusConfig, preset
-from nimbus.nimbusgs.degradation import Medium, block_mean, upsample_blocks
-from nimbus.nimbusgs.scattering import Box, camera_rays
+from nimbus.methods.nimbusgs.config import NimbusConfig, preset
+from nimbus.methods.nimbusgs.degradation import Medium, block_mean, upsample_blocks
+from nimbus.methods.nimbusgs.scattering import Box, camera_rays
 
 
 @pytest.mark.parametrize("h, w, s", [(6, 8, 2), (5, 7, 2), (7, 5, 3), (4, 4, 1), (3, 2, 4)])
@@ -73,7 +73,7 @@ def test_stride_one_is_the_per_pixel_airlight_bit_for_bit():
     desc = torch.tensor([0.7, 0.75, 0.8, 0.5, 0.5, 0.5])
     m = _medium(1)
     _, p = m.forward(rays, render, desc)
-    from nimbus.nimbusgs.scattering import march, march_interval
+    from nimbus.methods.nimbusgs.scattering import march, march_interval
     lo, hi = m.box_tensors
     ts, te = march_interval(rays, lo, hi, render["depth"], render["alpha"], m.cfg.near_plane, m.cfg.surface_alpha_min)
     res = march(m.field, rays.origin, rays.dirs, ts, te, m.cfg.ray_samples, "auto")

@@ -6,8 +6,8 @@ import pytest
 from tools.auto_thresholds import (VARIANTS, Cell, choose, derive_haze, derive_particles, margin, shortfall,
                                        variant_overrides)
 from nimbus.config_set import apply_overrides
-from nimbus.nimbusgs.auto import haze_present, particle_thresholds
-from nimbus.nimbusgs.config import preset
+from nimbus.methods.nimbusgs.auto import haze_present, particle_thresholds
+from nimbus.methods.nimbusgs.config import preset
 
 
 def cell(name, plm_gain, asym, energy, dark=0.05, corr=0.0, csm_gain=-1.0):

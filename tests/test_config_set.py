@@ -11,7 +11,7 @@ import pytest
 
 from nimbus.config_set import apply_overrides, parse_set_args
 from nimbus.errors import NimbusError
-from nimbus.nimbusgs.config import PRESETS as NIMBUS_PRESETS
+from nimbus.methods.nimbusgs.config import PRESETS as NIMBUS_PRESETS
 from nimbus.train.config import PRESETS as GS_PRESETS
 from nimbus.utils.jsonable import jsonable
 from weather_synth.config import protocol_config

@@ -18,8 +18,8 @@ import pytest
 from nimbus.config_set import apply_overrides, parse_set_args
 from nimbus.config_validation import INT_MAX, field_shapes, at_least, field_problem, validate
 from nimbus.errors import NimbusError
-from nimbus.nimbusgs.config import NimbusConfig
-from nimbus.nimbusgs.config import PRESETS as NIMBUS_PRESETS
+from nimbus.methods.nimbusgs.config import NimbusConfig
+from nimbus.methods.nimbusgs.config import PRESETS as NIMBUS_PRESETS
 from nimbus.train.config import PRESETS as GS_PRESETS
 from nimbus.train.config import TrainConfig
 from nimbus.methods.registry import METHODS, get_method
@@ -262,7 +262,7 @@ def no_runaway(monkeypatch):
     test rather than hanging it: the march with millions of samples a ray, the dark channel's huge window."""
     import torch.nn.functional as F
 
-    from nimbus.nimbusgs import degradation
+    from nimbus.methods.nimbusgs import degradation
 
     march, max_pool2d = degradation.march, F.max_pool2d
 
@@ -304,8 +304,8 @@ def test_a_dark_channel_window_wider_than_the_image_is_the_whole_image(no_runawa
     image gives the whole image's minimum, so the filter uses the smallest of them, with the same result."""
     import torch
 
-    from nimbus.nimbusgs.airlight import dark_channel_hard
-    from nimbus.nimbusgs.losses import soft_dark_channel
+    from nimbus.methods.nimbusgs.airlight import dark_channel_hard
+    from nimbus.methods.nimbusgs.losses import soft_dark_channel
 
     image = torch.rand(6, 8, 3, generator=torch.Generator().manual_seed(0), requires_grad=True)
     whole = image.min().expand(6, 8)
@@ -323,7 +323,7 @@ def test_the_size_limit_is_the_machines_or_nimbus_memory_limit_gib_and_the_advis
     """At 1 GiB, one 64x48 view's march fits 2**30 / (64 * 48 * MARCH_BYTES_PER_SAMPLE) samples a ray: one more
     is refused, that many builds."""
     from nimbus.data.io import load_scene
-    from nimbus.nimbusgs.scattering import MARCH_BYTES_PER_SAMPLE
+    from nimbus.methods.nimbusgs.scattering import MARCH_BYTES_PER_SAMPLE
     from nimbus.utils.memory import memory_limit
 
     scene = load_scene(scene_dir)

@@ -154,7 +154,7 @@ def test_corrupt_or_foreign_checkpoint_is_a_clear_error(run, capsys, content, me
 
 
 def test_every_checkpoint_loads_with_weights_only(scene, tmp_path):
-    from nimbus.nimbusgs.config import NimbusConfig
+    from nimbus.methods.nimbusgs.config import NimbusConfig
 
     cfg = NimbusConfig(**{**dataclasses_fields(_cfg()), "m_init": 2, "refresh_interval": 2, "grid_resolution": 4,
                           "ray_samples": 4, "components": "csm,plm,ggs", "write_decomposition": False,

@@ -9,7 +9,7 @@ import torch
 
 from nimbus.errors import NimbusError
 from nimbus.kernels import march as march_kernel
-from nimbus.nimbusgs.scattering import Box, ExtinctionGrid, UniformExtinction, march, march_reference
+from nimbus.methods.nimbusgs.scattering import Box, ExtinctionGrid, UniformExtinction, march, march_reference
 
 
 @pytest.fixture(scope="module")

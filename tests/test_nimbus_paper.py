@@ -11,10 +11,10 @@ from nimbus.config_set import apply_overrides
 from nimbus.data.builtin import render_builtin
 from nimbus.errors import NimbusError
 from nimbus.methods.registry import METHODS, PAPER, get_method
-from nimbus.nimbusgs.airlight import estimate_airlight, make_airlight, view_descriptor
-from nimbus.nimbusgs.config import NimbusConfig
-from nimbus.nimbusgs.degradation import ParticulateLayer, consistency_check
-from nimbus.nimbusgs.ggs import GGSFactors, ggs_weights, robust_normalise, sample_error
+from nimbus.methods.nimbusgs.airlight import estimate_airlight, make_airlight, view_descriptor
+from nimbus.methods.nimbusgs.config import NimbusConfig
+from nimbus.methods.nimbusgs.degradation import ParticulateLayer, consistency_check
+from nimbus.methods.nimbusgs.ggs import GGSFactors, ggs_weights, robust_normalise, sample_error
 from nimbus.train.runner import Runner
 from tests.test_nimbusgs_train import _degrade, _downscale
 

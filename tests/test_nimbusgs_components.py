@@ -10,18 +10,18 @@ import torch
 from nimbus.config_set import apply_overrides
 from nimbus.data.camera import Camera
 from nimbus.errors import NimbusError
-from nimbus.nimbusgs.airlight import (ConstantAirlight, NetworkAirlight, SHAirlight, estimate_airlight,
+from nimbus.methods.nimbusgs.airlight import (ConstantAirlight, NetworkAirlight, SHAirlight, estimate_airlight,
                                       view_descriptor)
-from nimbus.nimbusgs.auto import haze_evidence, particle_evidence, particle_thresholds, residual_tail_counts
-from nimbus.nimbusgs.config import NimbusConfig, paper_m_init, parse_components, preset
-from nimbus.nimbusgs.ggs import (GGSFactors, ggs_weights, lower_median, robust_normalise, sample_error,
+from nimbus.methods.nimbusgs.auto import haze_evidence, particle_evidence, particle_thresholds, residual_tail_counts
+from nimbus.methods.nimbusgs.config import NimbusConfig, paper_m_init, parse_components, preset
+from nimbus.methods.nimbusgs.ggs import (GGSFactors, ggs_weights, lower_median, robust_normalise, sample_error,
                                 scale_gradients)
-from nimbus.nimbusgs.losses import dcp_loss, soft_dark_channel
-from nimbus.nimbusgs.particulate import (ResidualStore, ViewConsistency, ViewGeometry, consistency_excess,
+from nimbus.methods.nimbusgs.losses import dcp_loss, soft_dark_channel
+from nimbus.methods.nimbusgs.particulate import (ResidualStore, ViewConsistency, ViewGeometry, consistency_excess,
                                          extract_residual, is_refresh_step, neighbours, particle_mask,
                                          tophat_window, white_tophat)
 from nimbus.restore.classical import classical_restore
-from nimbus.nimbusgs.scattering import (Box, ExtinctionGrid, UniformExtinction, camera_rays, density_scale_for,
+from nimbus.methods.nimbusgs.scattering import (Box, ExtinctionGrid, UniformExtinction, camera_rays, density_scale_for,
                                         gaussian_extinction_map, march, march_interval, ray_box_interval,
                                         surface_in_box)
 
@@ -600,7 +600,7 @@ def test_config_presets_variants_and_validation():
 
 
 def test_named_methods_are_registered_with_their_settings():
-    from nimbus.methods.nimbusgs import NimbusGS
+    from nimbus.methods.nimbusgs.method import NimbusGS
     from nimbus.methods.registry import get_method
 
     assert get_method("nimbus").preset("tiny").components == "auto"
@@ -615,7 +615,7 @@ def test_named_methods_are_registered_with_their_settings():
 
 # --- per-view density (view_density) ----------------------------------------------------------------------------
 def _medium(view_density: bool, views: int = 3):
-    from nimbus.nimbusgs.degradation import Medium
+    from nimbus.methods.nimbusgs.degradation import Medium
 
     cfg = apply_overrides(preset("tiny"), {"view_density": str(view_density).lower(), "airlight": "constant"})
     box = Box((-50.0,) * 3, (50.0,) * 3)
@@ -656,3 +656,24 @@ def test_view_density_off_is_the_field_alone():
     assert "view_density" not in {g["name"] for g in medium.param_groups()}
     assert medium.state_dict()["view_log_density"] is None
     _medium(False).load_state_dict(medium.state_dict())
+
+
+def test_ablations_are_variants_of_one_registry_entry(capsys):
+    from nimbus.cli.train import main
+    from nimbus.methods.registry import ENTRIES, METHODS, NIMBUS_VARIANTS
+
+    assert [e.name for e in ENTRIES] == ["3dgs", "restore-3dgs", "robust-3dgs", "medium-3dgs", "nimbus"]
+    assert len(METHODS) == len(ENTRIES) + len(NIMBUS_VARIANTS)
+    for v in NIMBUS_VARIANTS:  # each variant is the nimbus entry's class and presets with its own changes
+        spec = METHODS[f"nimbus-{v.suffix}"]
+        assert spec.base == "nimbus" and spec.target == METHODS["nimbus"].target
+        config = spec.preset("tiny")
+        for key, value in v.changes.items():
+            assert getattr(config, key) == (value(METHODS["nimbus"].preset("tiny")) if callable(value) else value)
+    assert METHODS["nimbus-ggs-no-depth"].preset("tiny").components == "csm,plm,ggs"
+    with pytest.raises(SystemExit) as exit_:
+        main(["--method", "help"])
+    assert exit_.value.code == 0
+    listing = capsys.readouterr().out
+    assert all(name in listing for name in METHODS)
+    assert "\n  nimbus-minit-15k " in listing and "\nnimbus " in listing

@@ -11,10 +11,10 @@ import torch
 from nimbus.data.builtin import render_builtin
 from nimbus.data.scene import View
 from nimbus.errors import NimbusError
-from nimbus.nimbusgs.auto import particle_thresholds
-from nimbus.nimbusgs.config import NimbusConfig
-from nimbus.nimbusgs.ggs import ggs_weights, ndc_grad_norm
-from nimbus.methods.nimbusgs import NimbusGS
+from nimbus.methods.nimbusgs.auto import particle_thresholds
+from nimbus.methods.nimbusgs.config import NimbusConfig
+from nimbus.methods.nimbusgs.ggs import ggs_weights, ndc_grad_norm
+from nimbus.methods.nimbusgs.method import NimbusGS
 from nimbus.render.rasterize import means2d_grad
 from nimbus.train.checkpoint import CHECKPOINT
 from nimbus.train.runner import Runner
@@ -422,7 +422,7 @@ def test_dehazed_view_prior_is_each_views_dark_channel_dehaze_and_only_with_csm(
 
 
 def test_dehazed_view_prior_adds_the_photometric_loss_at_its_stage_weight(hazy, tmp_path):
-    from nimbus.nimbusgs.losses import stage_loss
+    from nimbus.methods.nimbusgs.losses import stage_loss
 
     m = _nimbus(hazy, _cfg(lambda_dehaze=0.7, prior_stage2=0.5, components="csm"), tmp_path / "run").method
     vi = 1

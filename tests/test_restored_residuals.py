@@ -12,9 +12,9 @@ import torch
 
 from nimbus.data.builtin import render_builtin
 from nimbus.data.scene import View
-from nimbus.nimbusgs.config import NimbusConfig
-from nimbus.nimbusgs.degradation import view_excesses
-from nimbus.nimbusgs.particulate import extract_residual
+from nimbus.methods.nimbusgs.config import NimbusConfig
+from nimbus.methods.nimbusgs.degradation import view_excesses
+from nimbus.methods.nimbusgs.particulate import extract_residual
 from nimbus.restore.classical import RestoreConfig, classical_restore
 from nimbus.train.runner import Runner
 

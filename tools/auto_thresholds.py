@@ -1,4 +1,4 @@
-"""The validation runs behind ``components=auto``'s thresholds (:mod:`nimbus.nimbusgs.auto`), and what they show.
+"""The validation runs behind ``components=auto``'s thresholds (:mod:`nimbus.methods.nimbusgs.auto`), and what they show.
 
     python -m tools.auto_thresholds [--root DIR] [--scene-seeds 1,2] [--sizes tiny] [--cache DIR] [--jobs N]
                                     [--quick] [--checks]
@@ -239,7 +239,7 @@ def current_haze(folder: Path, preset: str) -> bool:
     from benchmark.cell import make_config
     from nimbus.data.io import load_scene
     from nimbus.methods.registry import get_method
-    from nimbus.nimbusgs.auto import haze_evidence
+    from nimbus.methods.nimbusgs.auto import haze_evidence
 
     cfg = make_config(get_method(METHOD), preset, {})
     scene = load_scene(folder)
@@ -373,7 +373,7 @@ def choose(gains: np.ndarray, declare, candidates: list[tuple], current: tuple, 
 
 
 def derive_haze(cells: list[Cell], current: tuple[float, float]) -> Choice:
-    from nimbus.nimbusgs.auto import haze_present
+    from nimbus.methods.nimbusgs.auto import haze_present
 
     if not all(c.complete for c in cells):  # no CSM gains without both CSM states
         return Choice(tuple(current), float("nan"), -1, float("nan"), True)
@@ -431,8 +431,8 @@ def _cell_table(cells: list[Cell], hazy: np.ndarray) -> list[str]:
 def report_derivation(cells: list[Cell], large: bool = False) -> None:
     """Derive and print the haze rule and the particle pairs; ``large``: the cells' views hold at least
     ``auto_large_view_pixels`` pixels, so the hazy pair derived is the ``_large`` one."""
-    from nimbus.nimbusgs.auto import haze_present
-    from nimbus.nimbusgs.config import NimbusConfig as C
+    from nimbus.methods.nimbusgs.auto import haze_present
+    from nimbus.methods.nimbusgs.config import NimbusConfig as C
 
     haze = derive_haze(cells, (C.auto_dark_threshold, C.auto_depth_corr))
     dark, corr = haze.thresholds
@@ -487,8 +487,8 @@ def report_checks(cells: list[Cell], recs: dict, base: dict, seed: int = 0) -> N
 
 def report_auto(cells: list[Cell]) -> None:
     """``auto``'s choice under the current defaults against the best forced variant, per cell."""
-    from nimbus.nimbusgs.auto import haze_present, particle_thresholds
-    from nimbus.nimbusgs.config import NimbusConfig
+    from nimbus.methods.nimbusgs.auto import haze_present, particle_thresholds
+    from nimbus.methods.nimbusgs.config import NimbusConfig
 
     cfg = NimbusConfig()
     short = 0
@@ -609,7 +609,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.store:
         from nimbus.data.builtin import get_size
-        from nimbus.nimbusgs.config import NimbusConfig
+        from nimbus.methods.nimbusgs.config import NimbusConfig
 
         cells = store_cells(Path(args.store))
         pixels = [get_size(c.data.rsplit("-", 1)[1]) for c in cells]

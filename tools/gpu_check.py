@@ -15,7 +15,7 @@ On a CUDA machine, installing nothing, it checks:
    difference <= 2e-3 and max <= 5e-2 (depth in units of the scene's farthest depth), the same
    Gaussians visible for >= 90 %, and a finite backward with the screen-space gradient filled.
 3. ``march``: NimbusGS's ray march (torch, the path CUDA takes) on CUDA against the
-   term-by-term :func:`~nimbus.nimbusgs.scattering.march_reference` on the CPU in float64,
+   term-by-term :func:`~nimbus.methods.nimbusgs.scattering.march_reference` on the CPU in float64,
    transmission, scatter and the grid's gradient (atol 1e-5, rtol 1e-4).
 4. ``train 3dgs`` / ``train nimbus-full``: the ``tiny`` preset (``--iterations`` steps, the
    schedule rescaled) on ``--scene`` on CUDA and on the CPU; PASS when the test PSNRs differ by
@@ -152,7 +152,7 @@ def check_gsplat(device) -> list[Verdict]:
 
 def check_march(device) -> Verdict:
     """The torch ray march on ``device`` against the term-by-term reference (float64, CPU)."""
-    from nimbus.nimbusgs.scattering import Box, ExtinctionGrid, march, march_reference
+    from nimbus.methods.nimbusgs.scattering import Box, ExtinctionGrid, march, march_reference
 
     name = f"march vs reference ({device})"
     gen = torch.Generator().manual_seed(0)

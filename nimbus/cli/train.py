@@ -18,7 +18,7 @@ from typing import Sequence
 from nimbus.cli_util import MAX_SEED, ArgumentParser, HelpFormatter, run_cli, seed_arg
 from nimbus.errors import NimbusError
 from nimbus.config_set import apply_overrides, parse_set_args
-from nimbus.methods.registry import METHODS, get_method
+from nimbus.methods.registry import ENTRIES, get_method, method_help
 from nimbus.train.run_folder import check_downscale, load_scene_arg, scene_input_folder
 
 #: Names this command in its run folder's marker: --overwrite empties only a run folder it made itself.
@@ -51,7 +51,9 @@ def parse_device(spec: str | None):
 def build_parser() -> ArgumentParser:
     p = ArgumentParser(prog="nimbus-train", description=__doc__, formatter_class=HelpFormatter)
     p.add_argument("scene", nargs="?", help="scene folder (COLMAP or transforms.json), or builtin:NAME[:SIZE]")
-    p.add_argument("--method", default="3dgs", help=f"one of: {', '.join(sorted(METHODS))}")
+    p.add_argument("--method", default="3dgs",
+                   help=f"one of: {', '.join(e.name for e in ENTRIES)}, or a variant NAME-SUFFIX "
+                        "(--method help lists them all)")
     p.add_argument("--preset", default="fast", help="tiny (CI, seconds), fast (minutes on a CPU), paper (30k its)")
     p.add_argument("--out", help="run directory to create")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field (repeatable)")
@@ -147,6 +149,9 @@ def _empty_folder(folder: Path) -> None:
 
 def _main(argv: Sequence[str] | None) -> int:
     args = build_parser().parse_args(argv)
+    if args.method == "help":
+        print(method_help())
+        return 0
     device = parse_device(args.device)
     if args.resume and (args.components is not None or args.set):
         raise NimbusError("--resume continues a run with its saved settings; drop --components / --set, "

@@ -1,6 +1,6 @@
 """Compiled CPU forward and backward of NimbusGS's network airlight (its MLP, fused).
 
-:class:`~nimbus.nimbusgs.airlight.NetworkAirlight` evaluates ``A = sigmoid(base + MLP(x))``
+:class:`~nimbus.methods.nimbusgs.airlight.NetworkAirlight` evaluates ``A = sigmoid(base + MLP(x))``
 for every pixel of a view, every step: with torch that is ten passes over ``[P, hidden]``
 tensors (two products, two SiLUs and their backward).  ``csrc/airlight.cpp`` runs a
 block of rows through every layer while it is in cache, forward and backward, and

@@ -1,11 +1,11 @@
-"""Compiled CPU ray march through an :class:`~nimbus.nimbusgs.scattering.ExtinctionGrid` (forward and backward).
+"""Compiled CPU ray march through an :class:`~nimbus.methods.nimbusgs.scattering.ExtinctionGrid` (forward and backward).
 
 NimbusGS's kernels (``csrc/march.cpp``, and ``csrc/airlight.cpp`` for
 :mod:`nimbus.kernels.airlight`) are their own library (:data:`EXTENSION`, built and
 cached by :class:`nimbus.kernels.extension.Extension`, apart from the rasterizer's).  The march
 computes, per ray, the softplus feature integral ``S = ds * sum_i softplus(f(x_i))`` over
 the K uniform samples of
-:func:`nimbus.nimbusgs.scattering.march`, without materialising the ``[P, K, 3]``
+:func:`nimbus.methods.nimbusgs.scattering.march`, without materialising the ``[P, K, 3]``
 sample points; the optical depth is ``tau = S * exp(log_scale)``.  Gradients flow to
 the grid features (and, through the product, to ``log_scale``), not to the rays or
 their intervals: :func:`usable` says when the kernel applies.

@@ -61,7 +61,7 @@ from nimbus.config_validation import Limit, at_least, between, one_of, positive
 from nimbus.data import Camera
 from nimbus.losses import photometric_loss
 from nimbus.methods.gs3d import GaussianSplatting
-from nimbus.nimbusgs.airlight import dark_channel_hard, estimate_airlight
+from nimbus.methods.nimbusgs.airlight import dark_channel_hard, estimate_airlight
 from nimbus.restore import pixel_sizes
 from nimbus.train.config import PRESETS as GS_PRESETS
 from nimbus.train.adam import Adam

@@ -6,12 +6,14 @@ entry in :data:`METHODS` (nothing registers itself on import)::
 
     "my-method": MethodSpec("my-method", "what it is", "nimbus.methods.my_method:MyMethod"),
 
-NimbusGS's ablation variants are entries too: ``nimbus`` decides its components from the
-data (``components=auto``); the variants start from every component forced on
-(``nimbus-full``, as in the paper's ablations) and change one thing.  Each is also
-reachable as ``--method nimbus --set ...`` (see :mod:`nimbus.nimbusgs.config`).
-``nimbus-paper`` (:data:`PAPER`) is NimbusGS as the paper's text writes it: every
-component on and each of our departures from the paper set back.
+A method may have named variants (:class:`Variant`): ``nimbus`` has one entry, and its ablations
+are variants of it, each reachable as ``--method nimbus-SUFFIX`` (and each also as ``--method nimbus
+--set ...``, see :mod:`nimbus.methods.nimbusgs.config`).  ``nimbus`` decides its components from the
+data (``components=auto``); the ablations start from every component forced on (``nimbus-full``,
+as in the paper's ablations) and change one thing.  ``nimbus-paper`` (:data:`PAPER`) is NimbusGS
+as the paper's text writes it: every component on and each of our departures from the paper set
+back.  :data:`METHODS` lists every name, variants included; ``nimbus-train --method help`` prints
+them grouped by entry.
 """
 
 from __future__ import annotations
@@ -26,14 +28,23 @@ from nimbus.errors import NimbusError
 
 #: ``module:function`` of the 3DGS presets (``preset(name) -> TrainConfig``) and of NimbusGS's.
 GS_PRESETS = "nimbus.train.config:preset"
-NIMBUS_PRESETS = "nimbus.nimbusgs.config:preset"
-NIMBUS = "nimbus.methods.nimbusgs:NimbusGS"
+NIMBUS_PRESETS = "nimbus.methods.nimbusgs.config:preset"
+NIMBUS = "nimbus.methods.nimbusgs.method:NimbusGS"
 FULL = "csm,plm,ggs"
 
 
 def _import(target: str) -> Any:
     module, _, name = target.partition(":")
     return getattr(importlib.import_module(module), name)
+
+
+@dataclass(frozen=True)
+class Variant:
+    """A named variant of a registry entry: ``--method ENTRY-SUFFIX`` is the entry with ``changes``."""
+
+    suffix: str
+    description: str
+    changes: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -58,6 +69,15 @@ class MethodSpec:
     target: str
     presets: str = GS_PRESETS
     changes: dict[str, Any] = field(default_factory=dict)
+    #: Named variants of this entry (``NAME-SUFFIX``), each its changes on top of the preset's config.
+    variants: tuple[Variant, ...] = ()
+    #: For a variant: the name of the entry it is a variant of.
+    base: str | None = None
+
+    def expand(self) -> list[MethodSpec]:
+        """This entry and one spec per variant (``NAME-SUFFIX``), in order."""
+        return [self, *(MethodSpec(f"{self.name}-{v.suffix}", v.description, self.target, self.presets,
+                                   {**self.changes, **v.changes}, base=self.name) for v in self.variants)]
 
     def load(self) -> type:
         """The method's class."""
@@ -73,19 +93,15 @@ class MethodSpec:
 def _paper_m_init(k: int) -> Callable:
     """``m_init`` of the paper's M_init = ``k`` (iterations of its 30k schedule), scaled to the preset."""
     def m_init(config) -> int:
-        from nimbus.nimbusgs.config import paper_m_init
+        from nimbus.methods.nimbusgs.config import paper_m_init
 
         return paper_m_init(config, k)
 
     return m_init
 
 
-def _nimbus(name: str, description: str, **changes) -> MethodSpec:
-    return MethodSpec(name, description, NIMBUS, NIMBUS_PRESETS, changes)
-
-
 #: ``nimbus-paper``: NimbusGS as the paper writes it (nimbusgs.tex: Method; supplementary Implementation
-#: Details), each of our departures (documented as "ours" in :class:`~nimbus.nimbusgs.config.NimbusConfig`)
+#: Details), each of our departures (documented as "ours" in :class:`~nimbus.methods.nimbusgs.config.NimbusConfig`)
 #: set back to the paper's statement.  The preset's schedule and resolution (iterations, M_init's share,
 #: Z_ref, grid size, K) are left as for ``nimbus``, so the two differ by these fields only; the ``paper``
 #: preset gives the paper's 4k + 26k, 128^3, K = 64 (see README "Where we depart from the paper").
@@ -109,7 +125,37 @@ PAPER: dict[str, Any] = {
 #: The paper's M_init ablation (iterations of its 30k schedule), scaled to the preset.
 M_INIT_VARIANTS = (1000, 2000, 4000, 10_000, 15_000)
 
-_SPECS = [
+def _ablation(suffix: str, description: str, **changes) -> Variant:
+    """A NimbusGS ablation: every component forced on (as the paper's ablations), then ``changes``."""
+    return Variant(suffix, description, {"components": FULL, **changes})
+
+
+#: NimbusGS's variants (``nimbus-SUFFIX``).
+NIMBUS_VARIANTS = (
+    Variant("full", "NimbusGS with every component forced on", {"components": FULL}),
+    Variant("paper", "NimbusGS as the paper writes it: every component, R = ReLU(I_in - I_con) unfiltered, "
+            "DCP on every pixel, plain 2x box, unclipped GGS, the released code's global airlight", PAPER),
+    Variant("no-csm", "NimbusGS without continuous scattering modelling", {"components": "plm,ggs"}),
+    Variant("no-plm", "NimbusGS without the particulate layer", {"components": "csm,ggs"}),
+    Variant("no-ggs", "NimbusGS without geometry-guided gradient scaling", {"components": "csm,plm"}),
+    _ablation("gaussian-extinction", "ablation: extinction as a per-Gaussian attribute", extinction="gaussian"),
+    _ablation("uniform-extinction", "ablation: one global extinction coefficient", extinction="uniform"),
+    _ablation("restored-residuals", "ablation: residuals against a classical 2D restoration",
+              residual_source="restored"),
+    _ablation("ggs-no-depth", "ablation: GGS without its depth factor", ggs_depth=False),
+    _ablation("ggs-no-radius", "ablation: GGS without its radius factor", ggs_radius=False),
+    _ablation("ggs-no-error", "ablation: GGS without its error factor", ggs_error=False),
+    _ablation("no-dcp", "ablation: without the dark-channel loss", lambda_dcp=0.0),
+    _ablation("dcp-stage2", "ablation: dark-channel loss kept in stage 2", dcp_stage2=True),
+    _ablation("no-tv", "ablation: without the TV loss on the extinction", lambda_tv=0.0),
+    _ablation("airlight-constant", "variant: one constant airlight colour", airlight="constant"),
+    _ablation("airlight-sh", "variant: airlight as SH of the ray direction (released code)", airlight="sh"),
+    *(_ablation(f"minit-{k // 1000}k", f"ablation: M_init = {k // 1000}k of the paper's 30k iterations, scaled to "
+                "the preset", m_init=_paper_m_init(k)) for k in M_INIT_VARIANTS),
+)
+
+#: The registry's entries (variants are listed with their entry).
+ENTRIES = [
     MethodSpec("3dgs", "vanilla 3D Gaussian Splatting (Inria defaults)", "nimbus.methods.gs3d:GaussianSplatting"),
     MethodSpec("restore-3dgs", "two-stage baseline: each training view restored in 2D (dark-channel dehazing, "
                "particle removal or an ONNX model), then 3DGS", "nimbus.methods.restore_3dgs:RestoreThen3DGS",
@@ -119,36 +165,21 @@ _SPECS = [
                "nimbus.methods.robust_3dgs:preset"),
     MethodSpec("medium-3dgs", "3DGS in a learned homogeneous medium (per-channel attenuation and backscatter)",
                "nimbus.methods.medium_3dgs:Medium3DGS", "nimbus.methods.medium_3dgs:preset"),
-    _nimbus("nimbus", "NimbusGS; components (CSM / PLM / GGS) chosen from the input views"),
-    _nimbus("nimbus-full", "NimbusGS with every component forced on", components=FULL),
-    _nimbus("nimbus-paper", "NimbusGS as the paper writes it: every component, R = ReLU(I_in - I_con) unfiltered, "
-            "DCP on every pixel, plain 2x box, unclipped GGS, the released code's global airlight", **PAPER),
-    _nimbus("nimbus-no-csm", "NimbusGS without continuous scattering modelling", components="plm,ggs"),
-    _nimbus("nimbus-no-plm", "NimbusGS without the particulate layer", components="csm,ggs"),
-    _nimbus("nimbus-no-ggs", "NimbusGS without geometry-guided gradient scaling", components="csm,plm"),
-    _nimbus("nimbus-gaussian-extinction", "ablation: extinction as a per-Gaussian attribute",
-            components=FULL, extinction="gaussian"),
-    _nimbus("nimbus-uniform-extinction", "ablation: one global extinction coefficient",
-            components=FULL, extinction="uniform"),
-    _nimbus("nimbus-restored-residuals", "ablation: residuals against a classical 2D restoration",
-            components=FULL, residual_source="restored"),
-    _nimbus("nimbus-ggs-no-depth", "ablation: GGS without its depth factor", components=FULL, ggs_depth=False),
-    _nimbus("nimbus-ggs-no-radius", "ablation: GGS without its radius factor", components=FULL, ggs_radius=False),
-    _nimbus("nimbus-ggs-no-error", "ablation: GGS without its error factor", components=FULL, ggs_error=False),
-    _nimbus("nimbus-no-dcp", "ablation: without the dark-channel loss", components=FULL, lambda_dcp=0.0),
-    _nimbus("nimbus-dcp-stage2", "ablation: dark-channel loss kept in stage 2", components=FULL, dcp_stage2=True),
-    _nimbus("nimbus-no-tv", "ablation: without the TV loss on the extinction", components=FULL, lambda_tv=0.0),
-    _nimbus("nimbus-airlight-constant", "variant: one constant airlight colour", components=FULL,
-            airlight="constant"),
-    _nimbus("nimbus-airlight-sh", "variant: airlight as SH of the ray direction (released code)",
-            components=FULL, airlight="sh"),
-    *(_nimbus(f"nimbus-minit-{k // 1000}k",
-              f"ablation: M_init = {k // 1000}k of the paper's 30k iterations, scaled to the preset",
-              components=FULL, m_init=_paper_m_init(k)) for k in M_INIT_VARIANTS),
+    MethodSpec("nimbus", "NimbusGS; components (CSM / PLM / GGS) chosen from the input views", NIMBUS, NIMBUS_PRESETS,
+               variants=NIMBUS_VARIANTS),
 ]
 
-#: name -> :class:`MethodSpec`, in the order above.
-METHODS: dict[str, MethodSpec] = {spec.name: spec for spec in _SPECS}
+#: name -> :class:`MethodSpec` of every entry and variant, in the order above.
+METHODS: dict[str, MethodSpec] = {spec.name: spec for entry in ENTRIES for spec in entry.expand()}
+
+
+def method_help() -> str:
+    """Every method, variants grouped under their entry: what ``nimbus-train --method help`` prints."""
+    lines = []
+    for entry in ENTRIES:
+        lines.append(f"{entry.name:<28} {entry.description}")
+        lines += [f"  {spec.name:<26} {spec.description}" for spec in entry.expand()[1:]]
+    return "\n".join(lines)
 
 
 def get_method(name: str) -> MethodSpec:

@@ -47,7 +47,7 @@ import numpy as np
 import torch
 
 from nimbus.errors import NimbusError
-from nimbus.nimbusgs.airlight import dark_channel_hard
+from nimbus.methods.nimbusgs.airlight import dark_channel_hard
 from nimbus.restore.classical import ParticleConfig, RestoreConfig, dehaze, remove_particles, white_tophat
 
 #: The named restorers (besides ``onnx:PATH``).

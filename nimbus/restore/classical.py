@@ -35,7 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from nimbus.nimbusgs.airlight import dark_channel_hard, estimate_airlight
+from nimbus.methods.nimbusgs.airlight import dark_channel_hard, estimate_airlight
 from nimbus.utils.guided import guided_filter as _guided
 
 #: Transmission refinements of :func:`dehaze`.

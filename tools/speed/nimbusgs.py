@@ -36,8 +36,8 @@ import time
 
 import torch
 
-from nimbus.nimbusgs.particulate import is_refresh_step
-from nimbus.nimbusgs.scattering import march, march_interval, march_reference
+from nimbus.methods.nimbusgs.particulate import is_refresh_step
+from nimbus.methods.nimbusgs.scattering import march, march_interval, march_reference
 from nimbus.render.rasterize import means2d_grad
 
 
@@ -66,7 +66,7 @@ def build_method(scene_spec: str, preset_name: str, out: str, checkpoint: str | 
     medium) loaded."""
     from pathlib import Path
 
-    from nimbus.nimbusgs.config import preset
+    from nimbus.methods.nimbusgs.config import preset
     from nimbus.train.run_folder import load_scene_arg
     from nimbus.train.runner import Runner
 
@@ -135,7 +135,7 @@ def component_rows(tr, repeats: int, reference: bool) -> list[tuple[str, float, 
     transmission = torch.rand(ts.shape[0])
     add("airlight fwd+bwd", lambda: medium.airlight(rays.dirs, transmission, tr.descriptors[vi]).sum().backward())
     pred = gt.clone().mul_(0.9).requires_grad_()
-    from nimbus.nimbusgs.losses import dcp_loss, stage_loss
+    from nimbus.methods.nimbusgs.losses import dcp_loss, stage_loss
 
     add("L1 + SSIM fwd+bwd", lambda: stage_loss(pred, gt, c.lambda_dssim).backward())
     add("L_DCP fwd+bwd", lambda: dcp_loss(pred, c.dcp_patch, c.dcp_temperature, c.dcp_form).backward())

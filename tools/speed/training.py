@@ -199,7 +199,7 @@ def instrumented(method, probe: Probe):
         _patch(stack, method.strategy, "step_post_backward", lambda f: probe.wrap("densify", f))
         medium = getattr(method, "medium", None)
         if medium is not None:
-            from nimbus.nimbusgs import degradation
+            from nimbus.methods.nimbusgs import degradation
 
             _patch(stack, degradation, "march", lambda f: probe.wrap("march", f))
             _patch(stack, degradation, "march_interval", lambda f: probe.wrap("march", f))

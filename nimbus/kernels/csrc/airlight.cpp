@@ -1,4 +1,4 @@
-// CPU forward and backward of NimbusGS's network airlight (nimbus/nimbusgs/airlight.py), fused.
+// CPU forward and backward of NimbusGS's network airlight (nimbus/methods/nimbusgs/airlight.py), fused.
 //
 // The MLP, per row r of P (one row per pixel):
 //

@@ -1,6 +1,6 @@
 // CPU ray march through a trilinear voxel extinction grid: optical depth per ray, forward and backward.
 //
-// The same mathematics as nimbus/nimbusgs/scattering.py (march_reference with an
+// The same mathematics as nimbus/methods/nimbusgs/scattering.py (march_reference with an
 // ExtinctionGrid field).  Ray r has origin o, unit direction d and interval [t0, t1];
 // its K samples sit at s_i = t0 + (i + 0.5) ds with ds = max(t1 - t0, 0) / K, and
 //

@@ -1,6 +1,6 @@
 """NimbusGS regularisers: the dark-channel prior on the clean render (L_DCP) and the training objective.
 
-L_TV lives with the extinction field (:meth:`nimbus.nimbusgs.scattering.ExtinctionGrid.tv`).
+L_TV lives with the extinction field (:meth:`nimbus.methods.nimbusgs.scattering.ExtinctionGrid.tv`).
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from nimbus.losses import photometric_loss
-from nimbus.nimbusgs.airlight import dark_channel_window
+from nimbus.methods.nimbusgs.airlight import dark_channel_window
 
 
 def soft_dark_channel(image: Tensor, patch: int, temperature: float) -> Tensor:

@@ -92,7 +92,7 @@ class NimbusConfig(TrainConfig):
     Components
     ----------
     components : str
-        ``"auto"`` (decide from the input views, :mod:`nimbus.nimbusgs.auto`), ``"none"``,
+        ``"auto"`` (decide from the input views, :mod:`nimbus.methods.nimbusgs.auto`), ``"none"``,
         or a comma-separated subset of ``csm,plm,ggs``.
 
     Continuous scattering (CSM)
@@ -118,7 +118,7 @@ class NimbusConfig(TrainConfig):
         Transmission the initial density scale gives along the typical ray (ours; the
         paper does not say).  Starting light (0.7) and letting the medium thicken beat
         starting at the dark-channel estimate of dense haze; 0 uses that estimate
-        (:mod:`nimbus.nimbusgs.auto`).  Re-checked on the validation scenes (seeds 1 and 2,
+        (:mod:`nimbus.methods.nimbusgs.auto`).  Re-checked on the validation scenes (seeds 1 and 2,
         tiny, the 24 hazy cells): the estimate gives -0.89 dB PSNR on average (better on 10
         of 24, -3.82 to +1.21) and -0.073 SSIM.
     init_dehaze : bool
@@ -160,7 +160,7 @@ class NimbusConfig(TrainConfig):
         the ray direction and the view's global descriptor (dark-channel airlight estimate,
         mean colour), so ``P`` cannot copy the input pixel by pixel with T -> 0.  ``pixel``
         (the paper's words, "conditioned on the degraded image I_in and transmission T"):
-        the input's colour at the pixel and T.  See :mod:`nimbus.nimbusgs.airlight`.
+        the input's colour at the pixel and T.  See :mod:`nimbus.methods.nimbusgs.airlight`.
     airlight_hidden : int
         Width of the airlight MLP's two hidden layers (the paper's MLP has 0.2M parameters:
         448 with ``airlight_input=pixel``; ``nimbus-paper`` trains the released code's global
@@ -249,7 +249,7 @@ class NimbusConfig(TrainConfig):
     consistency_neighbours : int
         Training views (nearest camera centres) against which a residual is checked for
         view-inconsistency before it enters R (ours; 0 turns the check off; see
-        :mod:`nimbus.nimbusgs.particulate`).  Also used by the particle evidence.
+        :mod:`nimbus.methods.nimbusgs.particulate`).  Also used by the particle evidence.
     refresh_interval : int
         Z_ref, stage-2 iterations between residual refreshes (paper: 100).
     refresh_mode : str
@@ -268,7 +268,7 @@ class NimbusConfig(TrainConfig):
         Bounds of the mean-normalised weight w_i / mean(w) (released code: 0.5, 3; a guard
         the paper's equation does not have; (0, inf) gives the bare equation).
 
-    Component selection (``components=auto``, :mod:`nimbus.nimbusgs.auto`)
+    Component selection (``components=auto``, :mod:`nimbus.methods.nimbusgs.auto`)
     -----------------------------------------------------------------------
     auto_dark_threshold : float
         Median dark channel of the inputs above which haze is assumed present.

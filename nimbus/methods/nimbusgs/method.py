@@ -15,10 +15,10 @@ Stage 2 (M_init+1..iterations, joint optimisation): ``I_deg = I_con + R``, loss
 ``refresh_interval`` iterations, and GGS rescales each Gaussian's gradients and hands the
 weights to the densification strategy (``info["grad2d_weight"]``) before it accumulates.
 
-The degradation model itself (medium, composite, residuals) is :mod:`nimbus.nimbusgs.degradation`;
+The degradation model itself (medium, composite, residuals) is :mod:`nimbus.methods.nimbusgs.degradation`;
 this file is its schedule on top of :class:`~nimbus.methods.gs3d.GaussianSplatting`.
 
-Only what the scene needs is built (``components``; ``auto``: :mod:`nimbus.nimbusgs.auto`):
+Only what the scene needs is built (``components``; ``auto``: :mod:`nimbus.methods.nimbusgs.auto`):
 without CSM there is no grid, no airlight and no ray march (I_con = I_hat, no DCP);
 without PLM no residual is stored or refreshed (I_deg = I_con); without GGS gradients
 are left alone.  The decision, its evidence and the estimated time saved are logged
@@ -50,19 +50,19 @@ from torch import Tensor
 from nimbus.data import Camera
 from nimbus.data.images import write_image
 from nimbus.methods.gs3d import GaussianSplatting
-from nimbus.nimbusgs.airlight import network_airlight_bytes, view_descriptor
-from nimbus.nimbusgs.auto import (ParticleEvidence, haze_evidence, particle_evidence, particle_thresholds,
+from nimbus.methods.nimbusgs.airlight import network_airlight_bytes, view_descriptor
+from nimbus.methods.nimbusgs.auto import (ParticleEvidence, haze_evidence, particle_evidence, particle_thresholds,
                                   residual_tail_counts)
-from nimbus.nimbusgs.config import NimbusConfig
-from nimbus.nimbusgs.degradation import (DEHAZE_MIN_TRANSMISSION, INIT_TRANSMISSION_RANGE, Medium,
+from nimbus.methods.nimbusgs.config import NimbusConfig
+from nimbus.methods.nimbusgs.degradation import (DEHAZE_MIN_TRANSMISSION, INIT_TRANSMISSION_RANGE, Medium,
                                          ParticulateLayer, compose, consistency_check, estimate_march_time,
                                          valid_image, view_excesses)
-from nimbus.nimbusgs.ggs import GGSFactors, ggs_weights, scale_gradients
-from nimbus.nimbusgs.losses import dcp_loss, stage_loss
-from nimbus.nimbusgs.particulate import ViewGeometry, is_refresh_step
+from nimbus.methods.nimbusgs.ggs import GGSFactors, ggs_weights, scale_gradients
+from nimbus.methods.nimbusgs.losses import dcp_loss, stage_loss
+from nimbus.methods.nimbusgs.particulate import ViewGeometry, is_refresh_step
 from nimbus.restore import pixel_sizes
 from nimbus.restore.classical import RestoreConfig, classical_restore, dehaze, remove_particles
-from nimbus.nimbusgs.scattering import (GRID_BYTES_PER_VOXEL, MARCH_BYTES_PER_SAMPLE, Box, ExtinctionGrid, ViewRays,
+from nimbus.methods.nimbusgs.scattering import (GRID_BYTES_PER_VOXEL, MARCH_BYTES_PER_SAMPLE, Box, ExtinctionGrid, ViewRays,
                                         camera_rays)
 from nimbus.render.gaussians import Gaussians
 from nimbus.render.rasterize import rasterize
@@ -76,7 +76,7 @@ _SLICE_MIN_SIDE = 128
 class NimbusGS(GaussianSplatting):
     """NimbusGS on a scene of degraded views (same constructor as :class:`GaussianSplatting`).
 
-    ``config`` is a :class:`~nimbus.nimbusgs.config.NimbusConfig`.
+    ``config`` is a :class:`~nimbus.methods.nimbusgs.config.NimbusConfig`.
     """
 
     cfg: NimbusConfig

@@ -9,7 +9,7 @@
   ``ReLU(I_in - I_con)`` capped by the input's white top-hat, and stored per training view.
 
 The training schedule around them (stages, refreshes, the automatic component choice, GGS)
-is the method's: :mod:`nimbus.methods.nimbusgs`.
+is the method's: :mod:`nimbus.methods.nimbusgs.method`.
 """
 
 from __future__ import annotations
@@ -22,11 +22,11 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from nimbus.data import Camera
-from nimbus.nimbusgs.airlight import make_airlight
-from nimbus.nimbusgs.config import NimbusConfig
-from nimbus.nimbusgs.particulate import (ResidualStore, ViewConsistency, ViewGeometry, extract_residual,
+from nimbus.methods.nimbusgs.airlight import make_airlight
+from nimbus.methods.nimbusgs.config import NimbusConfig
+from nimbus.methods.nimbusgs.particulate import (ResidualStore, ViewConsistency, ViewGeometry, extract_residual,
                                          tophat_window, white_tophat)
-from nimbus.nimbusgs.scattering import (Box, ExtinctionGrid, UniformExtinction, ViewRays, camera_rays,
+from nimbus.methods.nimbusgs.scattering import (Box, ExtinctionGrid, UniformExtinction, ViewRays, camera_rays,
                                         density_scale_for, gaussian_extinction_map, march, march_interval,
                                         ray_box_interval, surface_in_box)
 from nimbus.train.params import adam
@@ -41,8 +41,8 @@ _TIMING_GRID = 4
 
 def march_backend(config: NimbusConfig) -> str:
     """The ray march and the network airlight follow the rasterizer's backend: ``auto`` and ``cpp`` use the
-    compiled CPU kernels where they apply (:func:`~nimbus.nimbusgs.scattering.march`,
-    :class:`~nimbus.nimbusgs.airlight.NetworkAirlight`), ``torch`` and gsplat's CUDA path torch ops."""
+    compiled CPU kernels where they apply (:func:`~nimbus.methods.nimbusgs.scattering.march`,
+    :class:`~nimbus.methods.nimbusgs.airlight.NetworkAirlight`), ``torch`` and gsplat's CUDA path torch ops."""
     return "auto" if config.backend in ("auto", "cpp") else "torch"
 
 

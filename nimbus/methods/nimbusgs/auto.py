@@ -25,7 +25,7 @@ level ``sigma = 1.4826 MAD``, the statistic is
 
 with ``energy`` the mean (over pixels) of the positive tail's excess above ``k sigma``,
 counted only where the input is also brighter than the neighbouring views see the same
-surface point (:func:`nimbus.nimbusgs.particulate.consistency_excess`): an under-fitted
+surface point (:func:`nimbus.methods.nimbusgs.particulate.consistency_excess`): an under-fitted
 stage-1 model also leaves a positive tail (small bright details it has blurred), but
 those details are there in every view.  Particles are declared when ``asymmetry >=
 particle_threshold`` and ``energy >= particle_energy``.
@@ -63,8 +63,8 @@ import torch
 from torch import Tensor
 
 from nimbus.data.camera import Camera
-from nimbus.nimbusgs.airlight import dark_channel_hard, estimate_airlight
-from nimbus.nimbusgs.particulate import INCONSISTENT_FRACTION, highpass
+from nimbus.methods.nimbusgs.airlight import dark_channel_hard, estimate_airlight
+from nimbus.methods.nimbusgs.particulate import INCONSISTENT_FRACTION, highpass
 
 #: Points per view used for the depth correlation (subsampled deterministically above this).
 MAX_POINTS_PER_VIEW = 4000
@@ -173,7 +173,7 @@ def residual_tail_counts(image: Tensor, composite: Tensor,
                          excess: Tensor | None = None) -> tuple[int, int, float, int]:
     """``(n_pos, n_neg, tail energy sum, pixels)`` of one view's high-passed residual (module docstring).
 
-    With ``excess`` (:func:`nimbus.nimbusgs.particulate.consistency_excess`), the energy
+    With ``excess`` (:func:`nimbus.methods.nimbusgs.particulate.consistency_excess`), the energy
     counts only positive-tail pixels that are also view-inconsistent (or unknown).
     """
     raw = (image - composite).float().mean(dim=-1)
@@ -194,7 +194,7 @@ def particle_thresholds(config, hazy: bool, pixels: float | None = None) -> tupl
     haze pair when the views hold at least ``auto_large_view_pixels`` pixels (``pixels``: their mean; None: the
     small-view pair).
 
-    ``config`` is a :class:`~nimbus.nimbusgs.config.NimbusConfig` (any object with its
+    ``config`` is a :class:`~nimbus.methods.nimbusgs.config.NimbusConfig` (any object with its
     ``auto_particle_*`` fields).
     """
     if hazy:
