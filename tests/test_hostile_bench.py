@@ -109,18 +109,22 @@ def test_stale_lock_file_of_a_dead_process_is_taken_over(tmp_path):
 
 
 # --- which record counts ---------------------------------------------------------------------
+#: The fields every results record has (nimbus.schemas.ResultRecord): a hand-made record starts from these.
+CELL = {"scene": "garden", "size": "tiny", "weather": "H", "method": "3dgs", "preset": "tiny", "seed": 0}
+
+
 def test_a_later_error_never_hides_an_ok_record(tmp_path):
     store = ResultsStore(tmp_path)
-    store.append({"cell_id": "a", "status": "ok", "psnr": 20.0})
-    store.append({"cell_id": "b", "status": "error", "error": "first"})
-    store.append({"cell_id": "a", "status": "error", "error": "the other run removed my folder"})
-    store.append({"cell_id": "b", "status": "error", "error": "second"})
+    store.append({**CELL, "cell_id": "a", "status": "ok", "psnr": 20.0})
+    store.append({**CELL, "cell_id": "b", "status": "error", "error": "first"})
+    store.append({**CELL, "cell_id": "a", "status": "error", "error": "the other run removed my folder"})
+    store.append({**CELL, "cell_id": "b", "status": "error", "error": "second"})
     latest = store.latest()
     assert latest["a"]["status"] == "ok" and latest["a"]["psnr"] == 20.0
     assert latest["b"]["error"] == "second"  # never finished: its latest error shows
     assert store.finished() == {"a"}
-    store.append({"cell_id": "a", "status": "ok", "psnr": 21.0})  # a later ok supersedes (--rerun)
-    store.append({"cell_id": "a", "status": "error", "error": "again"})
+    store.append({**CELL, "cell_id": "a", "status": "ok", "psnr": 21.0})  # a later ok supersedes (--rerun)
+    store.append({**CELL, "cell_id": "a", "status": "error", "error": "again"})
     df = load_results(tmp_path).set_index("cell_id")
     assert df.loc["a", "psnr"] == 21.0 and df.loc["a", "status"] == "ok" and df.loc["b", "status"] == "error"
     assert len(load_results(tmp_path, latest=False)) == 6
@@ -131,7 +135,8 @@ APPENDER = textwrap.dedent("""
     from benchmark.store import ResultsStore
     store = ResultsStore(sys.argv[1])
     for i in range(int(sys.argv[3])):
-        store.append({"cell_id": f"{sys.argv[2]}-{i}", "status": "ok", "pad": "x" * 20000})
+        store.append({"cell_id": f"{sys.argv[2]}-{i}", "scene": "garden", "size": "tiny", "weather": "H",
+                      "method": "3dgs", "preset": "tiny", "seed": 0, "status": "ok", "pad": "x" * 20000})
 """)
 
 
@@ -590,7 +595,7 @@ def test_case_reports_overwrite_only_their_own_output(command, tmp_path, capsys)
     """Checked before any case runs: a foreign folder is refused, and so is one inside a results store."""
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "thesis.tex").write_text("mine")
-    ResultsStore(tmp_path / "bench").append({"cell_id": "a", "status": "ok"})
+    ResultsStore(tmp_path / "bench").append({**CELL, "cell_id": "a", "status": "ok"})
     before = _files(tmp_path)
     for out, words in ((tmp_path / "mine", "not written by"), (tmp_path / "bench" / command[0], "results store")):
         argv = [*command, "--out", str(out), "--work", str(tmp_path / "w"), "--overwrite"]
