@@ -212,7 +212,7 @@ class SettingView(Schema):
 class SettingManifest(Schema):
     """A degraded setting folder's ``manifest.json`` (:func:`weather_synth.dataset.degrade_scene`)."""
 
-    setting: str
+    setting: Optional[str] = None
     protocol: Optional[str] = None
     seed: Optional[int] = None
     config: Optional[dict] = None
