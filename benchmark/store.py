@@ -56,7 +56,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Iterator
 
-from nimbus.errors import NimbusError
+from nimbus.errors import NimbusError, SkippedRecordWarning
 from nimbus.schemas import ResultRecord, parse_json, problem
 from nimbus.utils.fs import confined_path, single_name
 
@@ -372,7 +372,8 @@ def _read_lines(path: Path) -> Iterator[dict]:
             skipped += 1
             if skipped <= MAX_WARNED_LINES:
                 warnings.warn(f"{path} line {i}: {why}; skipped it. The store was edited by hand or corrupted: "
-                              "fix or delete that line (rerun to recompute the cell)", stacklevel=3)
+                              "fix or delete that line (rerun to recompute the cell)", SkippedRecordWarning,
+                              stacklevel=3)
             continue
         # The id names the cell's run folder, lock and report thumbnails: one name, never a path.
         with _edited_record():
@@ -380,7 +381,7 @@ def _read_lines(path: Path) -> Iterator[dict]:
         yield rec
     if skipped > MAX_WARNED_LINES:
         warnings.warn(f"{path}: skipped {skipped - MAX_WARNED_LINES} more records that do not fit the results "
-                      "record schema (docs/benchmark.md)", stacklevel=3)
+                      "record schema (docs/benchmark.md)", SkippedRecordWarning, stacklevel=3)
 
 
 def load_results(root: str | os.PathLike, latest: bool = True, status: str | None = None):

@@ -36,7 +36,7 @@ plain dict they parsed.  ``docs/benchmark.md`` lists the fields of a results rec
 from __future__ import annotations
 
 import json
-from typing import Annotated, Any, Literal, Optional, get_args
+from typing import Annotated, Any, Literal, Optional, get_args, get_origin
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -280,10 +280,31 @@ def _describe(error: dict, nullable: bool) -> str:
 
 
 def _nullable(schema: type[BaseModel], loc: tuple) -> bool:
-    """Whether the field at ``loc`` (a top-level field of ``schema``) also takes null, for the message."""
-    if len(loc) != 1 or not isinstance(loc[0], str) or loc[0] not in schema.model_fields:
-        return False
-    return type(None) in get_args(schema.model_fields[loc[0]].annotation)
+    """Whether the field at ``loc`` also takes null (``Optional``), for the message: the annotations are
+    followed down through models, lists and dicts."""
+    annotation: Any = schema
+    for part in loc:
+        annotation = _unwrap(annotation)
+        if isinstance(part, str) and isinstance(annotation, type) and issubclass(annotation, BaseModel):
+            field = annotation.model_fields.get(part)
+            if field is None:
+                return False
+            annotation = field.annotation
+        elif get_origin(annotation) in (list, dict):
+            annotation = get_args(annotation)[-1] if get_args(annotation) else Any
+        else:
+            return False
+    return type(None) in get_args(annotation)
+
+
+def _unwrap(annotation: Any) -> Any:
+    """``X`` of ``Optional[X]`` / ``Annotated[X, ...]``."""
+    while True:
+        args = [a for a in get_args(annotation) if a is not type(None)]
+        if get_origin(annotation) is Annotated or (type(None) in get_args(annotation) and len(args) == 1):
+            annotation = args[0]
+        else:
+            return annotation
 
 
 def problem(schema: type[BaseModel], value: object) -> str | None:

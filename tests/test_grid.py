@@ -22,7 +22,7 @@ from benchmark.grid import DaskExecutor, InlineExecutor, LocalExecutor, build_ce
 from benchmark.store import ResultsStore, load_results
 from nimbus.cli_util import run_cli
 from nimbus.data.images import read_image
-from nimbus.errors import NimbusError
+from nimbus.errors import NimbusError, SkippedRecordWarning
 from nimbus.metrics import peak_signal_noise_ratio as psnr
 from nimbus.utils.fs import sha256_file
 
@@ -89,7 +89,7 @@ def test_store_skips_a_corrupt_middle_line_and_reads_the_rest(tmp_path):
     with open(store.path, "ab") as f:
         f.write(b"not json\n")
     store.append({**CELL, "cell_id": "b", "status": "ok"})
-    with pytest.warns(UserWarning, match=r"results.jsonl line 2: is not valid JSON .*skipped"):
+    with pytest.warns(SkippedRecordWarning, match=r"results.jsonl line 2: is not valid JSON .*skipped"):
         assert [r["cell_id"] for r in store.records()] == ["a", "b"]
 
 

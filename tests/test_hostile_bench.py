@@ -536,6 +536,46 @@ def test_report_refuses_record_fields_that_lead_out_of_the_store(case, report_st
     assert not (tmp_path / "out").exists()
 
 
+# --- a malformed record costs its line, not the store (issue 35, item 2) ------------------------------------------
+DEEP = "[" * 200_000 + "]" * 200_000
+# case -> (the store's second line, words its one warning line must hold); these used to end in tracebacks
+MALFORMED_LINES = {
+    "list-as-cell_id": ('{"cell_id": ["a"], "scene": "garden"}', "field 'cell_id' must be a string"),
+    "string-as-psnr": ("PSNR-ABC", "field 'psnr' must be a number or null, got 'abc'"),
+    "missing-scene": ("NO-SCENE", "field 'scene' is missing"),
+    "nested-200k-deep": (DEEP, "is not valid JSON (nested too deeply)"),
+    "non-object": ('["garden", 20.0]', "holds a list, not an object"),
+    "nan-psnr": ("PSNR-NAN", "field 'psnr' must be a finite number, got nan"),
+    "unknown-status": ("STATUS-DONE", "field 'status' must be 'ok' or 'error', got 'done'"),
+}
+
+
+def _malformed(record: dict, line: str) -> str:
+    other = dict(record, cell_id=record["cell_id"].replace("3dgs", "nimbus"), method="nimbus")
+    edits = {"PSNR-ABC": dict(other, psnr="abc"), "NO-SCENE": {k: v for k, v in other.items() if k != "scene"},
+             "PSNR-NAN": dict(other, psnr=float("nan")), "STATUS-DONE": dict(other, status="done")}
+    return json.dumps(edits[line]) if line in edits else line
+
+
+@pytest.mark.parametrize("case", list(MALFORMED_LINES))
+def test_tables_and_report_skip_a_malformed_record_with_one_warning_line(case, report_store, tmp_path, capsys):
+    root, record = report_store
+    line, words = MALFORMED_LINES[case]
+    ResultsStore(root).append(record)
+    with open(root / "results.jsonl", "a") as f:
+        f.write(_malformed(record, line) + "\n")
+    for command in (["tables", "--out", str(tmp_path / "tables")], ["report", "--out", str(tmp_path / "report")]):
+        assert run_cli(TOOL.run, [*command[:1], "--root", str(root), *command[1:]]) == 0, command
+        err = capsys.readouterr().err
+        warned = [w for w in err.splitlines() if w.startswith("warning:")]
+        assert "Traceback" not in err and len(warned) == 1, err
+        assert f"results.jsonl line 2: {words}" in warned[0] and len(warned[0]) < 400, warned[0]
+    # the good record is still there, in the tables and in the report, and the skipped one is not
+    table = (tmp_path / "tables" / "weather_H.md").read_text()
+    assert "| 3dgs | 26.00 |" in table and "| nimbus |" not in table
+    assert CID in (tmp_path / "report" / "index.html").read_text()
+
+
 # --- --overwrite replaces only the command's own earlier output (issue 35) ------------------------------------
 def _scene_folder(tmp_path: Path) -> Path:
     scene = tmp_path / "scene"

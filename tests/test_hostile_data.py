@@ -398,6 +398,38 @@ def test_split_keys_of_the_wrong_type_are_a_clear_error(tmp_path, key, value, fi
         load_scene(root)
 
 
+# case -> (top-level keys, frame 0's keys, the message after "transforms.json: "); nimbus.schemas.TransformsFile
+TRANSFORMS_SCHEMA_CASES = {
+    "list-as-file_path": ({}, {"file_path": ["images/0.png"]}, r"frame 0: field 'file_path' must be a string"),
+    "string-in-transform_matrix": ({}, {"transform_matrix": [[1, 0, 0, "0"], [0, 1, 0, 0], [0, 0, 1, 3]]},
+                                   r"frame 0 \(images/0.png\): field 'transform_matrix\[0\]\[3\]' must be a number"),
+    "missing-transform_matrix": ({}, {"transform_matrix": None}, r"frame 0 .*field 'transform_matrix' is missing"),
+    "missing-frames": ({"frames": None}, {}, "field 'frames' is missing"),
+    "frames-not-a-list": ({"frames": {"0": {}}}, {}, "field 'frames' must be a list"),
+    "frame-not-an-object": ({"frames": ["images/0.png"]}, {}, "frame 0: holds a string, not an object"),
+    "nan-focal-length": ({"fl_x": float("nan")}, {}, "field 'fl_x' must be a finite number, got nan"),
+    "string-as-width": ({"w": "16"}, {}, "field 'w' must be a number or null, got '16'"),
+    "list-as-camera_model": ({"camera_model": ["OPENCV"]}, {}, "field 'camera_model' must be a string or null"),
+}
+
+
+@pytest.mark.parametrize("case", list(TRANSFORMS_SCHEMA_CASES))
+def test_a_transforms_json_that_does_not_fit_its_schema_names_the_field(tmp_path, case):
+    top, frame0, message = TRANSFORMS_SCHEMA_CASES[case]
+    root = _transforms_scene(tmp_path, frame0={k: v for k, v in frame0.items() if v is not None},
+                             top={k: v for k, v in top.items() if v is not None})
+    if None in frame0.values() or None in top.values():  # remove the key instead
+        meta = json.loads((root / "transforms.json").read_text())
+        for k in [k for k, v in top.items() if v is None]:
+            meta.pop(k)
+        for k in [k for k, v in frame0.items() if v is None]:
+            meta["frames"][0].pop(k)
+        (root / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(NimbusError, match="transforms.json: " + message) as e:
+        load_scene(root)
+    assert "\n" not in str(e.value) and "fix the transforms file" in str(e.value)
+
+
 def test_deeply_nested_or_non_json_transforms_is_a_clear_error(tmp_path):
     (tmp_path / "deep").mkdir()
     (tmp_path / "deep" / "transforms.json").write_text("[" * 100_000 + "]" * 100_000)
