@@ -30,7 +30,7 @@ null or as text (:func:`nimbus.utils.jsonable.jsonable`).  What a schema cannot 
 file name, a ``run_dir`` inside the store) is checked by the reader after it.
 
 The schemas are pydantic models used only to check (:func:`check`, :func:`problem`): readers keep the
-plain dict they parsed.  ``docs/benchmark.md`` lists the fields of a results record.
+plain dict they parsed.  The docs' Record schemas page (made by ``docs/hooks.py``) lists every field.
 """
 
 from __future__ import annotations
@@ -135,7 +135,7 @@ class RunConfig(Schema):
 
     method: Text = Field(description="registered method name")
     scene: Text = Field(description="the scene: a folder or transforms file path, or builtin:NAME[:SIZE]")
-    seed: Seed
+    seed: Seed = Field(description="the training seed")
     config: dict = Field(description="every field of the method's config (checked by the config dataclass)")
     scene_load_args: Optional[SceneLoadArgs] = None
     config_type: Optional[str] = None
@@ -173,8 +173,8 @@ class TransformsCamera(Schema):
 class TransformsFrame(TransformsCamera):
     """One entry of a transforms.json's ``frames``."""
 
-    file_path: str
-    transform_matrix: Matrix
+    file_path: str = Field(description="the image, relative to the scene folder")
+    transform_matrix: Matrix = Field(description="OpenGL camera-to-world, 4x4 or its top 3x4")
     mask_path: Optional[str] = None
     depth_file_path: Optional[str] = None
 
@@ -182,7 +182,7 @@ class TransformsFrame(TransformsCamera):
 class TransformsFile(TransformsCamera):
     """A Blender / nerfstudio ``transforms.json``; each frame is a :class:`TransformsFrame`, checked as it is read."""
 
-    frames: Annotated[list, Field(min_length=1)]
+    frames: Annotated[list, Field(min_length=1, description="the views, each a TransformsFrame")]
     train_filenames: list[str] = []
     val_filenames: list[str] = []
     test_filenames: list[str] = []
@@ -194,7 +194,7 @@ class SceneManifest(Schema):
 
     scene: Optional[str] = None
     size: Optional[str] = None
-    seed: Seed
+    seed: Seed = Field(description="the seed it was rendered with (the benchmark's own scenes: 0)")
     image_count: Optional[int] = None
     conventions: Optional[dict] = None
 
@@ -219,7 +219,7 @@ class SettingManifest(Schema):
     input: Optional[dict] = None
     scene: Optional[dict] = None
     summary: Optional[dict] = None
-    views: list[SettingView]
+    views: list[SettingView] = Field(description="every view: its degraded image, clean image and layers")
 
 
 # --- checking ----------------------------------------------------------------------------------------------
