@@ -414,12 +414,25 @@ def classify_grid_run(child) -> tuple[str, str]:
 
 
 def _store_ok(sb: Sandbox, children: list) -> list[str]:
-    """Both runs: no failed cell in either summary; every record in the store is ``ok``."""
+    """Both runs: no failed cell in either summary; every record in the store fits its schema and is ``ok``."""
+    from nimbus.schemas import ResultRecord, parse_json, problem
+
     problems = [f"run {i + 1} reports failed cells" for i, c in enumerate(children)
                 if _FAILED_CELLS.search(c.stderr)]
     store = sb.box / OUT / "results.jsonl"
-    records = [json.loads(line) for line in store.read_text().splitlines() if line.strip()] \
-        if store.is_file() else []
+    records = []
+    for i, line in enumerate(store.read_text().splitlines() if store.is_file() else [], 1):
+        if not line.strip():
+            continue
+        try:
+            record = parse_json(line)
+            why = problem(ResultRecord, record)
+        except ValueError as e:
+            why = f"is not valid JSON ({e})"
+        if why is None:
+            records.append(record)
+        else:  # the tool wrote a record its own readers would skip
+            problems.append(f"results.jsonl line {i} {why}")
     if not records:
         problems.append("no record in results.jsonl")
     bad = [r.get("cell_id", "?") for r in records if r.get("status") != "ok"]

@@ -390,6 +390,22 @@ def test_broken_config_json_on_resume_is_a_clear_error(run, capsys, text, needle
     assert snapshot(run) == before
 
 
+@pytest.mark.parametrize("patch, needle", [
+    ({"seed": "x"}, "field 'seed' must be an integer, got 'x'"),
+    ({"scene": ["builtin:garden"]}, "field 'scene' must be a string"),
+    ({"scene_load_args": {"downscale": float("nan")}}, "field 'scene_load_args.downscale' must be an integer"),
+])
+def test_nimbus_view_of_a_run_whose_config_json_does_not_fit_is_one_error(run, capsys, patch, needle):
+    """nimbus-view opens a run through the same schema-checked reader as --resume."""
+    from nimbus.cli.view import main as view_main
+
+    (run / "config.json").write_text(json.dumps({**json.loads((run / "config.json").read_text()), **patch}))
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as info:
+        view_main([str(run), "--port", "0"])
+    assert_one_error(info.value.code, capsys.readouterr().err, "config.json", needle)
+
+
 def test_unusable_out_is_a_clear_error(tmp_path, capsys):
     a_file = tmp_path / "file"
     a_file.write_text("x")
