@@ -36,6 +36,8 @@ plain dict they parsed.  The docs' Record schemas page (made by ``docs/hooks.py`
 from __future__ import annotations
 
 import json
+import os
+from pathlib import Path
 from typing import Annotated, Any, Literal, Optional, get_args, get_origin
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -225,7 +227,7 @@ class SettingManifest(Schema):
 # --- checking ----------------------------------------------------------------------------------------------
 _TYPE_WORDS = {"string_type": "a string", "float_type": "a number", "int_type": "an integer",
                "bool_type": "true or false", "dict_type": "an object", "model_type": "an object",
-               "list_type": "a list", "none_required": "null", "literal_error": None}
+               "list_type": "a list", "none_required": "null"}
 
 
 def _json_kind(value: object) -> str:
@@ -256,7 +258,7 @@ def _describe(error: dict, nullable: bool) -> str:
     subject = f"field {field!r}"
     if kind == "missing":
         return f"{subject} is missing"
-    if kind in _TYPE_WORDS and kind != "literal_error":
+    if kind in _TYPE_WORDS:
         return f"{subject} must be {_TYPE_WORDS[kind]}{' or null' if nullable else ''}, got {shown(value)}"
     if kind == "finite_number":
         return f"{subject} must be a finite number, got {shown(value)}"
@@ -343,14 +345,12 @@ def parse_json(text: str | bytes) -> Any:
         raise ValueError(e.msg if e.lineno == 1 else f"{e.msg} at line {e.lineno}, column {e.colno}") from None
 
 
-def read_json_file(path, schema: type[BaseModel], fix: str) -> dict:
+def read_json_file(path: str | os.PathLike, schema: type[BaseModel], fix: str) -> dict:
     """The JSON object in file ``path``, checked against ``schema``; NimbusError naming the file otherwise.
 
-    For a file that is the input by itself (a run's config.json, a manifest): a file that cannot be read,
-    parsed or fits not is one error line ending in ``fix``.
+    For a file that is the input by itself (a run's config.json, a manifest): a file that cannot be read or
+    parsed, or does not fit, is one error line ending in ``fix``.
     """
-    from pathlib import Path
-
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
