@@ -157,10 +157,8 @@ def setting_folder(scene_spec: str, run: Path) -> tuple[Path, dict]:
     Raises NimbusError for a built-in scene, a folder ``nimbus-synth degrade`` did not write, or a
     setting without haze (no ``transmission`` / ``airlight`` to compare with).
     """
-    import json
-
     from nimbus.train.run_folder import BUILTIN_PREFIX, scene_input_folder
-    from weather_synth.dataset import MANIFEST
+    from weather_synth.dataset import MANIFEST, read_setting_manifest
 
     how = ("decompose needs a run trained on a setting folder of `nimbus-synth degrade` (or `nimbus-bench run`), "
            "which keeps the true layers")
@@ -172,12 +170,7 @@ def setting_folder(scene_spec: str, run: Path) -> tuple[Path, dict]:
     if not (folder / "layers").is_dir() or not manifest_path.is_file():
         raise NimbusError(f"the scene of run {run}, {folder}, has no layers/ and {MANIFEST} (it was not "
                           f"synthesised); {how}")
-    try:
-        manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as e:
-        raise NimbusError(f"cannot read {manifest_path} ({e.__class__.__name__}); restore the setting folder or "
-                          "synthesise it again") from None
-    return folder, manifest
+    return folder, read_setting_manifest(folder)
 
 
 def fit(a: np.ndarray, height: int, width: int) -> np.ndarray:

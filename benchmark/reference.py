@@ -212,14 +212,15 @@ def input_fingerprint(data: str | Path) -> dict | None:
     its manifest lists: the degraded image training reads and the clean image it is scored against), or
     None when the folder has no manifest or is no degraded setting (a clean-ceiling cell's clean scene, whose
     manifest lists no views)."""
-    from weather_synth.dataset import MANIFEST
+    from nimbus.schemas import Schema, read_json_file
+    from weather_synth.dataset import MANIFEST, read_setting_manifest
 
     data = Path(data)
     if not (data / MANIFEST).is_file():
         return None
-    views = json.loads((data / MANIFEST).read_text()).get("views")
-    if views is None:
+    if "views" not in read_json_file(data / MANIFEST, Schema, "restore or regenerate the folder"):
         return None
+    views = read_setting_manifest(data)["views"]
     return {v["name"]: {"image": image_fingerprint(data / v["image"]), "clean": image_fingerprint(data / v["clean"])}
             for v in views}
 

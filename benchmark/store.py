@@ -15,6 +15,14 @@ Which record counts
     later ``ok`` supersedes an earlier one (``--rerun``).  To drop a result for good,
     delete its line from ``results.jsonl``.
 
+What a record holds
+    Its fields and their types are declared once, in :class:`nimbus.schemas.ResultRecord` (listed on
+    the docs' Record schemas page); unknown fields are allowed.  A reader checks every line against it before
+    using any field, and skips a line that is not JSON or does not fit, with a warning naming the line
+    and the field (``results.jsonl line 7: field 'psnr' must be a number or null, got 'abc'``): one
+    damaged line costs its cell, which reruns, not the whole store.  :meth:`ResultsStore.append` refuses
+    to write a record that would not fit.
+
 Several runs on one root
     Two ``nimbus-bench run`` (or ``tradeoff``) on one root share it safely.  A run holds
     the lock of every cell it works on, from before it looks at the cell's folders until
@@ -48,7 +56,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Iterable, Iterator
 
-from nimbus.errors import NimbusError
+from nimbus.errors import NimbusError, SkippedRecordWarning
+from nimbus.schemas import ResultRecord, parse_json, problem
 from nimbus.utils.fs import confined_path, single_name
 
 STORE_FILE = "results.jsonl"
@@ -60,6 +69,8 @@ SCALAR_COLUMNS = (
     "num_gaussians", "num_params", "render_fps", "iterations", "config_hash", "input_sha256",
     "started_at", "finished_at", "scene_path", "scene_hash",
 )
+#: Bad lines of a store warned about one by one; past this many, one warning counts the rest.
+MAX_WARNED_LINES = 10
 # flock fails with these where the file system has no locking (an NFS mount with nolock, some FUSE).
 _NO_LOCKING = (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS)
 
@@ -149,7 +160,12 @@ class ResultsStore:
 
     # --- reading -----------------------------------------------------------------------
     def records(self) -> list[dict]:
-        """Every complete record, in file order; a truncated last line is skipped (with a warning)."""
+        """Every complete record, in file order.
+
+        Each line is checked against :class:`nimbus.schemas.ResultRecord`; a line that is not JSON or does
+        not fit is skipped with a warning naming the line and the field, and so is a truncated last line.
+        A ``cell_id`` that is not a single file name is refused (NimbusError): it would name a path.
+        """
         return list(_read_lines(self.path))
 
     def latest(self) -> dict[str, dict]:
@@ -167,8 +183,9 @@ class ResultsStore:
         A torn last line (a writer killed mid-write) is cut off first, under the same lock, so
         it can never be glued to this record and no concurrent writer's line is cut instead.
         """
-        if "cell_id" not in record:
-            raise ValueError("a record needs a cell_id")
+        why = problem(ResultRecord, record)
+        if why is not None:  # a writer's bug: such a line would be skipped by every reader
+            raise ValueError(f"a results record {why} (nimbus.schemas.ResultRecord)")
         line = (json.dumps(record, sort_keys=True, allow_nan=False) + "\n").encode()
         self.root.mkdir(parents=True, exist_ok=True)
         fd = os.open(self.path, os.O_RDWR | os.O_APPEND | os.O_CREAT | os.O_CLOEXEC, 0o644)
@@ -351,20 +368,30 @@ def _read_lines(path: Path) -> Iterator[dict]:
     if tail.strip():
         warnings.warn(f"{path}: ignoring a truncated last line (an interrupted run); it is removed on the next "
                       "append", stacklevel=3)
+    skipped = 0
     for i, raw in enumerate(complete, 1):
         if not raw.strip():
             continue
         try:
-            rec = json.loads(raw)
-        except json.JSONDecodeError as e:
-            raise NimbusError(f"{path} line {i} is not valid JSON ({e.msg}); the store was edited or corrupted "
-                              "by hand: delete that line and rerun to recompute the cell") from None
-        if not isinstance(rec, dict) or "cell_id" not in rec:
-            raise NimbusError(f"{path} line {i} is not a benchmark record; delete it and rerun")
+            rec = parse_json(raw)
+            why = problem(ResultRecord, rec)
+        except ValueError as e:
+            why = f"is not valid JSON ({str(e)[:120]})"
+        if why is not None:
+            # One damaged line costs its cell, not the store: the rest still reads, and the cell reruns.
+            skipped += 1
+            if skipped <= MAX_WARNED_LINES:
+                warnings.warn(f"{path} line {i}: {why}; skipped it. The store was edited by hand or corrupted: "
+                              "fix or delete that line (rerun to recompute the cell)", SkippedRecordWarning,
+                              stacklevel=3)
+            continue
         # The id names the cell's run folder, lock and report thumbnails: one name, never a path.
         with _edited_record():
             single_name(rec["cell_id"], f"{path} line {i}: 'cell_id'")
         yield rec
+    if skipped > MAX_WARNED_LINES:
+        warnings.warn(f"{path}: skipped {skipped - MAX_WARNED_LINES} more records that do not fit the results "
+                      "record schema (nimbus.schemas.ResultRecord)", SkippedRecordWarning, stacklevel=3)
 
 
 def check_scene_hashes(records: Iterable[dict], where: str) -> None:

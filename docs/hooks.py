@@ -4,6 +4,8 @@
   argparse parsers (``build_parser()``), so the command reference cannot go stale.
 * ``reference/methods.md``: every registered method (``nimbus.methods.registry.METHODS``) with what it changes.
 * ``reference/tools.md``: ``tools/README.md``, the developer and research scripts of a checkout (not installed).
+* ``reference/records.md``: the declared schema of every record Nimbus reads back (``nimbus.schemas``): each
+  field, its JSON type, whether it is required, what it holds.
 * ``results/*.md``: the READMEs of the committed table folders (``tables/README.md``, ``tables/<folder>/README.md``)
   and of the reference data (``benchmark/data/README.md``), so the site links to the recorded results and the
   history of how each figure came to be stays beside its table.
@@ -104,6 +106,73 @@ def methods_page() -> str:
     return "\n".join(lines) + "\n"
 
 
+def _json_type(prop: dict, defs: dict) -> str:
+    """A JSON Schema property as words: ``number or null``, ``list of PerViewScore``, ``non-empty string``."""
+    if "anyOf" in prop:
+        return " or ".join(_json_type(p, defs) for p in prop["anyOf"])
+    if "$ref" in prop:
+        return prop["$ref"].rsplit("/", 1)[-1]
+    if "enum" in prop or "const" in prop:
+        return " or ".join(f'`"{v}"`' for v in prop.get("enum", [prop.get("const")]))
+    kind = prop.get("type", "any value")
+    if kind == "array":
+        low, high = prop.get("minItems"), prop.get("maxItems")
+        count = ("" if low is None and high is None else f" ({low} entries)" if low == high
+                 else f" ({low or 0}-{high} entries)" if high is not None else f" (at least {low})")
+        items = prop.get("items")
+        return f"list{count}" + (f" of {_json_type(items, defs)}" if items else "")
+    if kind == "object":
+        values = prop.get("additionalProperties")
+        return f"object of {_json_type(values, defs)}" if isinstance(values, dict) else "object"
+    words = {"string": "string", "number": "number (finite)", "integer": "integer", "null": "null",
+             "boolean": "true or false"}.get(kind, kind)
+    if prop.get("minLength") == 1:
+        words = "non-empty " + words
+    bounds = [f"{op} {prop[key]}" for key, op in (("minimum", ">="), ("maximum", "<=")) if key in prop]
+    return words + (f" ({', '.join(bounds)})" if bounds else "")
+
+
+def _schema_table(schema: dict, defs: dict) -> list[str]:
+    required = set(schema.get("required", []))
+    extra = schema.get("additionalProperties", True) is not False
+    lines = ["| field | type | required | what it holds |", "| --- | --- | --- | --- |"]
+    for name, prop in schema.get("properties", {}).items():
+        lines.append(f"| `{name}` | {_json_type(prop, defs)} | {'yes' if name in required else ''} | "
+                     f"{prop.get('description', '').replace('|', '/')} |")
+    lines += ["", "Other fields are allowed and not checked." if extra else "No other field is allowed.", ""]
+    return lines
+
+
+def records_page() -> str:
+    """Each record kind of ``nimbus.schemas``: its fields as a table, then the tables of its nested objects."""
+    _checkout_first()
+    from nimbus import schemas
+
+    kinds = [("`results.jsonl`: one line per finished cell attempt", schemas.ResultRecord),
+             ("A run folder's `config.json`", schemas.RunConfig),
+             ("`transforms.json` (Blender / nerfstudio scenes)", schemas.TransformsFile),
+             ("`transforms.json`: each entry of `frames`", schemas.TransformsFrame),
+             ("A built-in scene's `manifest.json`", schemas.SceneManifest),
+             ("A degraded setting's `manifest.json`", schemas.SettingManifest)]
+    lines = ["# Record schemas", "",
+             "Generated when the site is built, from `nimbus/schemas.py`: the one declared schema of each kind of "
+             "record Nimbus reads back, checked on every read before any field is used. A number must be finite "
+             "(`NaN` and `Infinity` are refused) and types are strict (`\"1\"` is no number, `true` no integer). A "
+             "record that does not fit is one line naming the file, the line of a JSON Lines file, and the field: "
+             "skipped with a warning in a results store (the rest still reads), an error for a file that is the "
+             "input by itself. What the store does with them: [The benchmark](../benchmark.md#the-results-store).",
+             ""]
+    for title, model in kinds:
+        schema = model.model_json_schema()
+        defs = schema.get("$defs", {})
+        doc = re.sub(r":\w+:`~?(?:[\w]+\.)*(\w+)`", r"`\1`", model.__doc__.splitlines()[0]).replace("``", "`")
+        lines += [f"## {title}", "", f"`nimbus.schemas.{model.__name__}`: {doc}", ""]
+        lines += _schema_table(schema, defs)
+        for name, sub in defs.items():
+            lines += [f"`{name}`:", ""] + _schema_table(sub, defs)
+    return "\n".join(lines) + "\n"
+
+
 def _table_pages() -> dict[str, Path]:
     """Site path -> source README of the recorded results."""
     pages = {"results/index.md": ROOT / "tables" / "README.md",
@@ -130,6 +199,7 @@ def on_files(files, config):
         files.append(File.generated(config, f"reference/{tool}.md", content=reference_page(tool)))
     files.append(File.generated(config, "reference/methods.md", content=methods_page()))
     files.append(File.generated(config, "reference/tools.md", content=(ROOT / "tools" / "README.md").read_text()))
+    files.append(File.generated(config, "reference/records.md", content=records_page()))
     pages = _table_pages()
     folders = {Path(p).stem for p in pages}
     for uri, source in pages.items():

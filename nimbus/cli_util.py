@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from typing import Callable, Sequence
 
-from nimbus.errors import NimbusError
+from nimbus.errors import NimbusError, SkippedRecordWarning
 
 #: Seeds every Nimbus tool accepts: non-negative and below 2**32, the largest seed every generator
 #: a seed reaches takes (COLMAP's is an unsigned 32-bit int; numpy's legacy seeding stops there too).
@@ -48,7 +49,17 @@ def pick_by_name(items: Sequence, spec: str | None, what: str, list_command: str
 
 
 def run_cli(main: Callable[[Sequence[str] | None], int], argv: Sequence[str] | None = None) -> int:
-    """Run ``main``; a :class:`NimbusError` becomes one ``error: ...`` line and exit code 2."""
+    """Run ``main``; a :class:`NimbusError` becomes one ``error: ...`` line and exit code 2, and a
+    :class:`SkippedRecordWarning` one ``warning: ...`` line (other warnings show as Python shows them)."""
+    shown = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, SkippedRecordWarning):
+            print(f"warning: {message}", file=sys.stderr)
+        else:
+            shown(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show
     try:
         return int(main(argv) or 0)
     except NimbusError as e:
@@ -57,6 +68,8 @@ def run_cli(main: Callable[[Sequence[str] | None], int], argv: Sequence[str] | N
     except KeyboardInterrupt:
         print("error: interrupted", file=sys.stderr)
         return 130
+    finally:
+        warnings.showwarning = shown
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):

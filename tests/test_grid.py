@@ -22,7 +22,7 @@ from benchmark.grid import DaskExecutor, InlineExecutor, LocalExecutor, build_ce
 from benchmark.store import ResultsStore, load_results
 from nimbus.cli_util import run_cli
 from nimbus.data.images import read_image
-from nimbus.errors import NimbusError
+from nimbus.errors import NimbusError, SkippedRecordWarning
 from nimbus.metrics import peak_signal_noise_ratio as psnr
 from nimbus.utils.fs import sha256_file
 
@@ -59,34 +59,38 @@ def copy_data(src, dst):
 
 
 # --- store -----------------------------------------------------------------------------------
+#: The fields every results record has (nimbus.schemas.ResultRecord): a hand-made record starts from these.
+CELL = {"scene": "garden", "size": "tiny", "weather": "H", "method": "3dgs", "preset": "tiny", "seed": 0}
+
+
 def test_store_ignores_and_repairs_a_truncated_last_line(tmp_path):
     store = ResultsStore(tmp_path)
-    store.append({"cell_id": "a", "status": "ok", "psnr": 20.0})
-    store.append({"cell_id": "b", "status": "error", "error": "boom"})
+    store.append({**CELL, "cell_id": "a", "status": "ok", "psnr": 20.0})
+    store.append({**CELL, "cell_id": "b", "status": "error", "error": "boom"})
     with open(store.path, "ab") as f:  # a crash in the middle of writing a record
         f.write(b'{"cell_id": "c", "status": "o')
     with pytest.warns(UserWarning, match="truncated"):
         assert [r["cell_id"] for r in store.records()] == ["a", "b"]
         assert store.finished() == {"a"}
     with pytest.warns(UserWarning, match="truncated"):
-        store.append({"cell_id": "c", "status": "ok"})
+        store.append({**CELL, "cell_id": "c", "status": "ok"})
     lines = store.path.read_text().splitlines()
     assert [json.loads(line)["cell_id"] for line in lines] == ["a", "b", "c"]
-    store.append({"cell_id": "b", "status": "ok", "psnr": 21.0})  # a retry supersedes the error
+    store.append({**CELL, "cell_id": "b", "status": "ok", "psnr": 21.0})  # a retry supersedes the error
     df = load_results(tmp_path)
     assert sorted(df["cell_id"]) == ["a", "b", "c"]
     assert df.set_index("cell_id").loc["b", "psnr"] == 21.0
     assert len(load_results(tmp_path, latest=False)) == 4
 
 
-def test_store_rejects_a_corrupt_middle_line(tmp_path):
+def test_store_skips_a_corrupt_middle_line_and_reads_the_rest(tmp_path):
     store = ResultsStore(tmp_path)
-    store.append({"cell_id": "a", "status": "ok"})
+    store.append({**CELL, "cell_id": "a", "status": "ok"})
     with open(store.path, "ab") as f:
         f.write(b"not json\n")
-    store.append({"cell_id": "b", "status": "ok"})
-    with pytest.raises(NimbusError, match="line 2"):
-        store.records()
+    store.append({**CELL, "cell_id": "b", "status": "ok"})
+    with pytest.warns(SkippedRecordWarning, match=r"results.jsonl line 2: is not valid JSON .*skipped"):
+        assert [r["cell_id"] for r in store.records()] == ["a", "b"]
 
 
 # --- cells -----------------------------------------------------------------------------------

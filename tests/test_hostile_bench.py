@@ -109,18 +109,22 @@ def test_stale_lock_file_of_a_dead_process_is_taken_over(tmp_path):
 
 
 # --- which record counts ---------------------------------------------------------------------
+#: The fields every results record has (nimbus.schemas.ResultRecord): a hand-made record starts from these.
+CELL = {"scene": "garden", "size": "tiny", "weather": "H", "method": "3dgs", "preset": "tiny", "seed": 0}
+
+
 def test_a_later_error_never_hides_an_ok_record(tmp_path):
     store = ResultsStore(tmp_path)
-    store.append({"cell_id": "a", "status": "ok", "psnr": 20.0})
-    store.append({"cell_id": "b", "status": "error", "error": "first"})
-    store.append({"cell_id": "a", "status": "error", "error": "the other run removed my folder"})
-    store.append({"cell_id": "b", "status": "error", "error": "second"})
+    store.append({**CELL, "cell_id": "a", "status": "ok", "psnr": 20.0})
+    store.append({**CELL, "cell_id": "b", "status": "error", "error": "first"})
+    store.append({**CELL, "cell_id": "a", "status": "error", "error": "the other run removed my folder"})
+    store.append({**CELL, "cell_id": "b", "status": "error", "error": "second"})
     latest = store.latest()
     assert latest["a"]["status"] == "ok" and latest["a"]["psnr"] == 20.0
     assert latest["b"]["error"] == "second"  # never finished: its latest error shows
     assert store.finished() == {"a"}
-    store.append({"cell_id": "a", "status": "ok", "psnr": 21.0})  # a later ok supersedes (--rerun)
-    store.append({"cell_id": "a", "status": "error", "error": "again"})
+    store.append({**CELL, "cell_id": "a", "status": "ok", "psnr": 21.0})  # a later ok supersedes (--rerun)
+    store.append({**CELL, "cell_id": "a", "status": "error", "error": "again"})
     df = load_results(tmp_path).set_index("cell_id")
     assert df.loc["a", "psnr"] == 21.0 and df.loc["a", "status"] == "ok" and df.loc["b", "status"] == "error"
     assert len(load_results(tmp_path, latest=False)) == 6
@@ -131,7 +135,8 @@ APPENDER = textwrap.dedent("""
     from benchmark.store import ResultsStore
     store = ResultsStore(sys.argv[1])
     for i in range(int(sys.argv[3])):
-        store.append({"cell_id": f"{sys.argv[2]}-{i}", "status": "ok", "pad": "x" * 20000})
+        store.append({"cell_id": f"{sys.argv[2]}-{i}", "scene": "garden", "size": "tiny", "weather": "H",
+                      "method": "3dgs", "preset": "tiny", "seed": 0, "status": "ok", "pad": "x" * 20000})
 """)
 
 
@@ -531,6 +536,46 @@ def test_report_refuses_record_fields_that_lead_out_of_the_store(case, report_st
     assert not (tmp_path / "out").exists()
 
 
+# --- a malformed record costs its line, not the store (issue 35, item 2) ------------------------------------------
+DEEP = "[" * 200_000 + "]" * 200_000
+# case -> (the store's second line, words its one warning line must hold); these used to end in tracebacks
+MALFORMED_LINES = {
+    "list-as-cell_id": ('{"cell_id": ["a"], "scene": "garden"}', "field 'cell_id' must be a string"),
+    "string-as-psnr": ("PSNR-ABC", "field 'psnr' must be a number or null, got 'abc'"),
+    "missing-scene": ("NO-SCENE", "field 'scene' is missing"),
+    "nested-200k-deep": (DEEP, "is not valid JSON (nested too deeply)"),
+    "non-object": ('["garden", 20.0]', "holds a list, not an object"),
+    "nan-psnr": ("PSNR-NAN", "field 'psnr' must be a finite number, got nan"),
+    "unknown-status": ("STATUS-DONE", "field 'status' must be 'ok' or 'error', got 'done'"),
+}
+
+
+def _malformed(record: dict, line: str) -> str:
+    other = dict(record, cell_id=record["cell_id"].replace("3dgs", "nimbus"), method="nimbus")
+    edits = {"PSNR-ABC": dict(other, psnr="abc"), "NO-SCENE": {k: v for k, v in other.items() if k != "scene"},
+             "PSNR-NAN": dict(other, psnr=float("nan")), "STATUS-DONE": dict(other, status="done")}
+    return json.dumps(edits[line]) if line in edits else line
+
+
+@pytest.mark.parametrize("case", list(MALFORMED_LINES))
+def test_tables_and_report_skip_a_malformed_record_with_one_warning_line(case, report_store, tmp_path, capsys):
+    root, record = report_store
+    line, words = MALFORMED_LINES[case]
+    ResultsStore(root).append(record)
+    with open(root / "results.jsonl", "a") as f:
+        f.write(_malformed(record, line) + "\n")
+    for command in (["tables", "--out", str(tmp_path / "tables")], ["report", "--out", str(tmp_path / "report")]):
+        assert run_cli(TOOL.run, [*command[:1], "--root", str(root), *command[1:]]) == 0, command
+        err = capsys.readouterr().err
+        warned = [w for w in err.splitlines() if w.startswith("warning:")]
+        assert "Traceback" not in err and len(warned) == 1, err
+        assert f"results.jsonl line 2: {words}" in warned[0] and len(warned[0]) < 400, warned[0]
+    # the good record is still there, in the tables and in the report, and the skipped one is not
+    table = (tmp_path / "tables" / "weather_H.md").read_text()
+    assert "| 3dgs | 26.00 |" in table and "| nimbus |" not in table
+    assert CID in (tmp_path / "report" / "index.html").read_text()
+
+
 # --- --overwrite replaces only the command's own earlier output (issue 35) ------------------------------------
 def _scene_folder(tmp_path: Path) -> Path:
     scene = tmp_path / "scene"
@@ -590,7 +635,7 @@ def test_case_reports_overwrite_only_their_own_output(command, tmp_path, capsys)
     """Checked before any case runs: a foreign folder is refused, and so is one inside a results store."""
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "thesis.tex").write_text("mine")
-    ResultsStore(tmp_path / "bench").append({"cell_id": "a", "status": "ok"})
+    ResultsStore(tmp_path / "bench").append({**CELL, "cell_id": "a", "status": "ok"})
     before = _files(tmp_path)
     for out, words in ((tmp_path / "mine", "not written by"), (tmp_path / "bench" / command[0], "results store")):
         argv = [*command, "--out", str(out), "--work", str(tmp_path / "w"), "--overwrite"]

@@ -309,15 +309,15 @@ def test_nan_sparse_point_in_a_colmap_model_is_refused(tmp_path):
 
 # --- 3. camera values ------------------------------------------------------------------------
 @pytest.mark.parametrize("change, message", [
-    ({"cx": float("nan")}, "cx must be finite"),
-    ({"cy": float("inf")}, "cy must be finite"),
+    ({"cx": float("nan")}, "field 'cx' must be a finite number, got nan"),
+    ({"cy": float("inf")}, "field 'cy' must be a finite number, got inf"),
     ({"fl_x": -20.0}, "focal lengths must be positive"),
-    ({"fl_x": "abc"}, "fl_x must be a number"),
+    ({"fl_x": "abc"}, "field 'fl_x' must be a number or null, got 'abc'"),
     ({"cx": None, "w": 0}, "w must be a positive whole number"),
     ({"w": 16.5}, "w must be a positive whole number"),
-    ({"h": True}, "h must be a number"),
+    ({"h": True}, "field 'h' must be a number or null, got True"),
     ({"camera_angle_x": 0.0, "fl_x": None}, "fl_x must be finite"),
-    ({"k1": float("nan")}, "k1 must be finite"),
+    ({"k1": float("nan")}, "field 'k1' must be a finite number"),
 ])
 def test_invalid_camera_values_in_transforms_json_name_the_file_and_frame(tmp_path, change, message):
     frame0 = {k: v for k, v in change.items() if v is not None}
@@ -336,7 +336,7 @@ def test_invalid_pose_in_transforms_json_is_refused(tmp_path):
     bad = np.eye(4)
     bad[0, 3] = np.nan
     root = _transforms_scene(tmp_path / "nan", frame0={"transform_matrix": bad.tolist()})
-    with pytest.raises(NimbusError, match="frame 0.*NaN or inf"):
+    with pytest.raises(NimbusError, match=r"frame 0 \(images/0.png\): field 'transform_matrix\[0\]\[3\]' must be"):
         load_scene(root)
     skew = np.eye(4)
     skew[0, 1] = 0.5
@@ -378,19 +378,56 @@ def test_nan_pose_in_a_colmap_model_names_the_image(tmp_path, legacy):
 
 
 # --- 4. malformed JSON and PLY ---------------------------------------------------------------
-@pytest.mark.parametrize("value", [None, 5, ["images/0.png"], ""])
-def test_file_path_of_the_wrong_type_is_a_clear_error(tmp_path, value):
+@pytest.mark.parametrize("value, message", [(None, "field 'file_path' must be a string, got None"),
+                                            (5, "field 'file_path' must be a string, got 5"),
+                                            (["images/0.png"], r"field 'file_path' must be a string, got \['images"),
+                                            ("", "file_path.*not a file name")])
+def test_file_path_of_the_wrong_type_is_a_clear_error(tmp_path, value, message):
     root = _transforms_scene(tmp_path, frame0={"file_path": value})
-    with pytest.raises(NimbusError, match="transforms.json: frame 0.*file_path.*not a file name"):
+    with pytest.raises(NimbusError, match=f"transforms.json: frame 0.*{message}"):
         load_scene(root)
 
 
-@pytest.mark.parametrize("key, value", [("test_filenames", 5), ("test_filenames", [1, 2]),
-                                        ("train_filenames", {"a": 1}), ("val_filenames", "images/0.png")])
-def test_split_keys_of_the_wrong_type_are_a_clear_error(tmp_path, key, value):
+@pytest.mark.parametrize("key, value, field", [("test_filenames", 5, "test_filenames"),
+                                               ("test_filenames", [1, 2], r"test_filenames\[0\]"),
+                                               ("train_filenames", {"a": 1}, "train_filenames"),
+                                               ("val_filenames", "images/0.png", "val_filenames")])
+def test_split_keys_of_the_wrong_type_are_a_clear_error(tmp_path, key, value, field):
     root = _transforms_scene(tmp_path, top={key: value})
-    with pytest.raises(NimbusError, match=f'"{key}" must be a list of file paths'):
+    with pytest.raises(NimbusError, match=f"transforms.json: field '{field}' must be a (list|string)"):
         load_scene(root)
+
+
+# case -> (top-level keys, frame 0's keys, the message after "transforms.json: "); nimbus.schemas.TransformsFile
+TRANSFORMS_SCHEMA_CASES = {
+    "list-as-file_path": ({}, {"file_path": ["images/0.png"]}, r"frame 0: field 'file_path' must be a string"),
+    "string-in-transform_matrix": ({}, {"transform_matrix": [[1, 0, 0, "0"], [0, 1, 0, 0], [0, 0, 1, 3]]},
+                                   r"frame 0 \(images/0.png\): field 'transform_matrix\[0\]\[3\]' must be a number"),
+    "missing-transform_matrix": ({}, {"transform_matrix": None}, r"frame 0 .*field 'transform_matrix' is missing"),
+    "missing-frames": ({"frames": None}, {}, "field 'frames' is missing"),
+    "frames-not-a-list": ({"frames": {"0": {}}}, {}, "field 'frames' must be a list"),
+    "frame-not-an-object": ({"frames": ["images/0.png"]}, {}, "frame 0: holds a string, not an object"),
+    "nan-focal-length": ({"fl_x": float("nan")}, {}, "field 'fl_x' must be a finite number, got nan"),
+    "string-as-width": ({"w": "16"}, {}, "field 'w' must be a number or null, got '16'"),
+    "list-as-camera_model": ({"camera_model": ["OPENCV"]}, {}, "field 'camera_model' must be a string or null"),
+}
+
+
+@pytest.mark.parametrize("case", list(TRANSFORMS_SCHEMA_CASES))
+def test_a_transforms_json_that_does_not_fit_its_schema_names_the_field(tmp_path, case):
+    top, frame0, message = TRANSFORMS_SCHEMA_CASES[case]
+    root = _transforms_scene(tmp_path, frame0={k: v for k, v in frame0.items() if v is not None},
+                             top={k: v for k, v in top.items() if v is not None})
+    if None in frame0.values() or None in top.values():  # remove the key instead
+        meta = json.loads((root / "transforms.json").read_text())
+        for k in [k for k, v in top.items() if v is None]:
+            meta.pop(k)
+        for k in [k for k, v in frame0.items() if v is None]:
+            meta["frames"][0].pop(k)
+        (root / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(NimbusError, match="transforms.json: " + message) as e:
+        load_scene(root)
+    assert "\n" not in str(e.value) and "fix the transforms file" in str(e.value)
 
 
 def test_deeply_nested_or_non_json_transforms_is_a_clear_error(tmp_path):

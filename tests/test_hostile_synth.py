@@ -133,6 +133,35 @@ def test_preview_reads_only_inside_the_dataset(tmp_path, capsys, inputs):
     assert not (tmp_path / "sheet.png").exists()
 
 
+# case -> how the H setting's manifest is spoiled, words its one error line must hold (nimbus.schemas.SettingManifest)
+MANIFEST_CASES = {
+    "list-as-view-name": (lambda m: m["views"][0].update(name=["000.png"]), "field 'views[0].name' must be a string"),
+    "string-as-seed": (lambda m: m.update(seed="0"), "field 'seed' must be an integer or null, got '0'"),
+    "missing-views": (lambda m: m.pop("views"), "field 'views' is missing"),
+    "nested-200k-deep": ("[" * 200_000 + "]" * 200_000, "is not valid JSON (nested too deeply)"),
+    "non-object": ('["H"]', "holds a list, not an object"),
+    "nan-seed": (lambda m: m.update(seed=float("nan")), "field 'seed' must be an integer or null, got nan"),
+    "unknown-split": (lambda m: m["views"][0].update(split="val"), "field 'views[0].split' must be 'train' or 'test'"),
+}
+
+
+@pytest.mark.parametrize("case", list(MANIFEST_CASES))
+def test_preview_of_a_manifest_that_does_not_fit_is_one_error_naming_the_field(tmp_path, capsys, inputs, case):
+    dataset = tmp_path / "dataset"
+    shutil.copytree(inputs["dataset"], dataset)
+    spoil, words = MANIFEST_CASES[case]
+    manifest = dataset / "H" / "manifest.json"
+    if isinstance(spoil, str):
+        manifest.write_text(spoil)
+    else:
+        m = json.loads(manifest.read_text())
+        spoil(m)
+        manifest.write_text(json.dumps(m))
+    code, err = cli(capsys, "preview", dataset, "--out", tmp_path / "sheet.png")
+    assert_one_error(code, err, "manifest.json", words, "nimbus-synth degrade")
+    assert not (tmp_path / "sheet.png").exists()
+
+
 # --- 2. an output may not be, contain or lie inside an input ------------------------------------------
 @pytest.mark.parametrize("where", ["is", "inside", "contains"])
 @pytest.mark.parametrize("command", ["degrade", "sfm"])

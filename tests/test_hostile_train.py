@@ -351,17 +351,27 @@ def test_unusable_device_is_refused(tmp_path, capsys, device):
 
 @pytest.mark.parametrize("text, needle", [
     ("{not json", "not valid JSON"),
-    ("[" * 100_000 + "]" * 100_000, "not valid JSON"),
-    ("[]", "not an object"),
-    (None, "has no 'method'"),
-    ({"seed": "x"}, "'seed'"),
-    ({"seed": -1}, "'seed'"),
-    ({"config": [1]}, "'config'"),
+    ("[" * 100_000 + "]" * 100_000, "not valid JSON (nested too deeply)"),
+    ("[" * 200_000 + "]" * 200_000, "not valid JSON (nested too deeply)"),
+    ("[]", "holds a list, not an object"),
+    ('"config"', "holds a string, not an object"),
+    (b"\xff\xfe{}", "not a UTF-8 text file"),
+    (None, "field 'method' is missing"),
+    ({"seed": "x"}, "field 'seed' must be an integer, got 'x'"),
+    ({"seed": -1}, "field 'seed' must be >= 0, got -1"),
+    ({"seed": True}, "field 'seed' must be an integer, got True"),
+    ({"seed": float("nan")}, "field 'seed' must be an integer, got nan"),
+    ({"config": [1]}, "field 'config' must be an object, got [1]"),
     ({"config": {"no_such_field": 1}}, "does not fit"),
     ({"config": {"iterations": "many"}}, "config"),
-    ({"method": 3}, "'method'"),
+    ({"method": 3}, "field 'method' must be a string, got 3"),
+    ({"method": ["3dgs"]}, "field 'method' must be a string, got ['3dgs']"),
+    ({"method": ""}, "field 'method' must not be empty"),
     ({"method": "nope"}, "unknown method"),
-    ({"scene_load_args": {"shell": "rm -rf /"}}, "scene_load_args"),
+    ({"scene": None}, "field 'scene' must be a string, got None"),
+    ({"scene_load_args": {"shell": "rm -rf /"}}, "field 'scene_load_args.shell' is not a known key"),
+    ({"scene_load_args": {"downscale": "2"}}, "field 'scene_load_args.downscale' must be an integer, got '2'"),
+    ({"scene_load_args": {"downscale": 0}}, "field 'scene_load_args.downscale' must be >= 1, got 0"),
 ])
 def test_broken_config_json_on_resume_is_a_clear_error(run, capsys, text, needle):
     saved = json.loads((run / "config.json").read_text())
@@ -373,11 +383,27 @@ def test_broken_config_json_on_resume_is_a_clear_error(run, capsys, text, needle
         if isinstance(patch.get("config"), dict):
             patch = {"config": {**saved["config"], **patch["config"]}}
         text = json.dumps({**saved, **patch})
-    (run / "config.json").write_text(text)
+    (run / "config.json").write_bytes(text if isinstance(text, bytes) else text.encode())
     before = snapshot(run)
     code, err = cli(["--resume", run], capsys)
-    assert_one_error(code, err, needle)
+    assert_one_error(code, err, "config.json", needle)
     assert snapshot(run) == before
+
+
+@pytest.mark.parametrize("patch, needle", [
+    ({"seed": "x"}, "field 'seed' must be an integer, got 'x'"),
+    ({"scene": ["builtin:garden"]}, "field 'scene' must be a string"),
+    ({"scene_load_args": {"downscale": float("nan")}}, "field 'scene_load_args.downscale' must be an integer"),
+])
+def test_nimbus_view_of_a_run_whose_config_json_does_not_fit_is_one_error(run, capsys, patch, needle):
+    """nimbus-view opens a run through the same schema-checked reader as --resume."""
+    from nimbus.cli.view import main as view_main
+
+    (run / "config.json").write_text(json.dumps({**json.loads((run / "config.json").read_text()), **patch}))
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as info:
+        view_main([str(run), "--port", "0"])
+    assert_one_error(info.value.code, capsys.readouterr().err, "config.json", needle)
 
 
 def test_unusable_out_is_a_clear_error(tmp_path, capsys):

@@ -63,7 +63,8 @@ def test_the_committed_reference_checks_inputs_by_content_within_the_cross_cpu_s
 # --- the comparison, on synthetic records -----------------------------------------------------
 def record(cell_id: str, psnr: float = 20.0, ssim: float = 0.7, lpips: float = 0.3, status: str = "ok",
            input_sha256: str = "a" * 64, config_hash: str = "c" * 64) -> dict:
-    return {"cell_id": cell_id, "status": status, "psnr": psnr, "ssim": ssim, "lpips": lpips,
+    return {"cell_id": cell_id, "scene": "garden", "size": "tiny", "weather": "H", "method": "3dgs", "preset": "tiny",
+            "seed": 0, "status": status, "psnr": psnr, "ssim": ssim, "lpips": lpips,
             "input_sha256": input_sha256, "config_hash": config_hash, "ssim_protocol": "3dgs", "lpips_net": "vgg",
             "error": None if status == "ok" else "boom"}
 

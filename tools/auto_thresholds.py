@@ -529,12 +529,12 @@ def store_cells(root: Path) -> list[Cell]:
     import json
 
     from benchmark.store import ResultsStore, record_data_name, require_store
-    from nimbus.data.transforms import read_json
     from nimbus.errors import NimbusError
+    from nimbus.schemas import SceneManifest, read_json_file
 
     require_store(root)
     for manifest in sorted((root / "scenes").glob("*/manifest.json")):
-        if read_json(manifest).get("seed", 0) == 0:
+        if read_json_file(manifest, SceneManifest, "delete the scene folder to render it again")["seed"] == 0:
             raise NimbusError(f"{manifest.parent} is the benchmark's own scene (seed 0), reported and never tuned "
                               "on; give a store of validation scenes (seed >= 1)")
     ok = [r for r in ResultsStore(root).latest().values() if r.get("status") == "ok"]

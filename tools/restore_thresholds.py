@@ -31,7 +31,7 @@ def prepare(root: Path, sizes: list[str], seed: int = VALIDATION_SEED) -> list[P
     is written."""
     from nimbus.data.builtin import get_size, write_builtin
     from nimbus.data.io import load_scene
-    from nimbus.data.transforms import read_json
+    from nimbus.schemas import SceneManifest, read_json_file
     from nimbus.errors import NimbusError
     from weather_synth.config import protocol_config
     from weather_synth.dataset import degrade_scene
@@ -40,7 +40,7 @@ def prepare(root: Path, sizes: list[str], seed: int = VALIDATION_SEED) -> list[P
     for size in sizes:
         get_size(size)
     for manifest in sorted((root / "scenes").glob("*/manifest.json")):
-        made = read_json(manifest).get("seed")
+        made = read_json_file(manifest, SceneManifest, "delete the scene folder to render it again")["seed"]
         if made != seed:
             raise NimbusError(f"{manifest.parent} was made with seed {made}, not {seed}; give another --root for "
                               f"seed {seed}")

@@ -7,7 +7,6 @@ folder) through its manifests, so it needs no scene reader.
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Sequence
@@ -18,7 +17,7 @@ import numpy as np
 from nimbus.data.images import read_image, to_uint8
 from nimbus.errors import NimbusError
 from nimbus.utils.fs import confined_path
-from weather_synth.dataset import MANIFEST
+from weather_synth.dataset import MANIFEST, read_setting_manifest
 from weather_synth.settings import ALL_SETTING_NAMES
 
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
@@ -94,10 +93,7 @@ def find_settings(dataset: str | os.PathLike) -> list[tuple[str, Path, dict]]:
                                                                         if (p / MANIFEST).is_file())
     found = []
     for f in folders:
-        try:
-            m = json.loads((f / MANIFEST).read_text())
-        except (OSError, json.JSONDecodeError) as e:
-            raise NimbusError(f"{f / MANIFEST} is unreadable ({e}); regenerate the dataset") from None
+        m = read_setting_manifest(f)
         found.append((m.get("setting", f.name), f, m))
     if not found:
         raise NimbusError(f"{dataset} holds no degraded settings (no */{MANIFEST}); "

@@ -523,6 +523,15 @@ def _manifest(scene: Scene, setting: WeatherSetting, config: SynthConfig, synth:
     }
 
 
+def read_setting_manifest(folder: str | os.PathLike) -> dict:
+    """The ``manifest.json`` of degraded setting folder ``folder``, checked against
+    :class:`nimbus.schemas.SettingManifest`: NimbusError naming the file and the field otherwise."""
+    from nimbus.schemas import SettingManifest, read_json_file
+
+    return read_json_file(Path(folder) / MANIFEST, SettingManifest,
+                          "regenerate the setting with `nimbus-synth degrade`")
+
+
 def format_summary(summaries: Sequence[SettingSummary]) -> str:
     """The end-of-run table: setting, views, mean transmission, particle coverage, seconds."""
     lines = [f"{'setting':<8} {'views':>5} {'mean t':>7} {'particles':>9} {'seconds':>7}"]

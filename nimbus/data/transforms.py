@@ -35,6 +35,10 @@ Reading
   ``masks/`` file of the same view.  ``depth_file_path`` is ignored (nerfstudio's depth
   units differ from Nimbus's), but a name that leads outside ROOT is still refused;
   ``depths/``, ``masks/`` and ``sky/`` folders are attached as for every layout (:mod:`nimbus.data.io`).
+* The file, then each frame as it is reached, is checked against its declared schema
+  (:class:`nimbus.schemas.TransformsFile`, :class:`~nimbus.schemas.TransformsFrame`): a key of the
+  wrong type (a number as ``file_path``, a string or NaN in ``transform_matrix``, a split list that
+  is no list of names) raises NimbusError naming the file, the frame and the field.
 * Every camera value is checked (:class:`nimbus.data.camera.Camera`): finite
   numbers, positive focal lengths, whole positive sizes, a finite rotation; a
   bad one raises NimbusError naming the file and the frame.
@@ -73,6 +77,7 @@ from nimbus.data.scene_files import (
 from nimbus.data.scene import Scene, View, llff_test_names, read_split_lists, scene_file
 from nimbus.data.undistort import Lens, undistort_views
 from nimbus.errors import NimbusError
+from nimbus.schemas import TransformsFile, TransformsFrame, check
 from nimbus.utils.fs import atomic_write_bytes, atomic_write_json
 from nimbus.utils.progress import note_if_slow, slow_progress
 
@@ -85,8 +90,8 @@ FISHEYE_CAMERA_MODELS = ("OPENCV_FISHEYE",)
 # Colour given to PLY points that carry none (mid-grey).
 DEFAULT_POINT_COLOR = 128
 WRITTEN_PLY = "sparse_pc.ply"
-# nerfstudio's split keys: lists of file paths (only test_filenames is used; all are type-checked).
-SPLIT_KEYS = ("train_filenames", "val_filenames", "test_filenames")
+# What a transforms file must say, whatever reads it (nimbus.schemas.TransformsFile / TransformsFrame).
+FIX = "fix the transforms file"
 # Per-frame file names Nimbus does not read but still keeps inside the scene.
 IGNORED_FRAME_FILES = ("depth_file_path",)
 
@@ -149,15 +154,6 @@ def _check_listed_once(listed: dict[str, str], key: str, where: str) -> None:
         raise NimbusError(f"{where} lists the same image as {listed[key]}; a scene lists each image once: remove "
                           "one of the two frames")
     listed[key] = where
-
-
-def _string_list(meta: dict, key: str, file: Path) -> list[str]:
-    """``meta[key]`` as a list of strings ([] when absent); NimbusError for any other type."""
-    value = meta.get(key, [])
-    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
-        raise NimbusError(f"{file}: \"{key}\" must be a list of file paths, got {json.dumps(value)[:80]}; "
-                          "fix the transforms file")
-    return value
 
 
 def transforms_lens(model: object, values: dict) -> Lens | None:
@@ -281,18 +277,14 @@ def read_transforms(path: str | os.PathLike, downscale: int = 1, cache_dir: str 
     # the file it resolved to ("a" and "a.png" name one file).
     listed: dict[str, str] = {}
     for file, is_test in files:
-        meta = read_json(file)
+        meta = check(TransformsFile, read_json(file), str(file), FIX)
         metas.append(meta)
-        frames = meta.get("frames")
-        if not isinstance(frames, list) or not frames:
-            raise NimbusError(f"{file} has no \"frames\" list; it is not a transforms.json scene")
-        for key in SPLIT_KEYS:
-            names = _string_list(meta, key, file)
-            if key == "test_filenames":
-                test_filenames += names
+        frames = meta["frames"]
+        test_filenames += meta.get("test_filenames", [])
         for i, frame in enumerate(slow_progress(frames, f"reading {file.name}", len(frames), "frame")):
-            if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
-                raise NimbusError(f"{file}: frame {i} needs \"file_path\" and \"transform_matrix\"")
+            # Each frame as it is reached: a file of a million frames is never held twice.
+            named = isinstance(frame, dict) and isinstance(frame.get("file_path"), str)
+            check(TransformsFrame, frame, f"{file}: frame {i}" + (f" ({frame['file_path']})" if named else ""), FIX)
             where = f"{file}: frame {i} ({frame['file_path']})"
             if isinstance(frame["file_path"], str):
                 _check_listed_once(listed, "name:" + PurePosixPath(frame["file_path"]).as_posix(), where)

@@ -9,10 +9,8 @@ writes it.
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 
-from nimbus.cli_util import check_seed
 from nimbus.errors import NimbusError
 
 BUILTIN_PREFIX = "builtin:"
@@ -57,31 +55,14 @@ def scene_input_folder(spec: str) -> Path | None:
 def read_run_config(run: Path) -> dict:
     """The checked ``config.json`` of run folder ``run``: method, scene, seed, config and scene_load_args.
 
-    Raises NimbusError naming the file for anything that is not what
-    :meth:`~nimbus.train.runner.Runner.write_config` writes.
+    Raises NimbusError naming the file and the field for anything that is not what
+    :meth:`~nimbus.train.runner.Runner.write_config` writes (:class:`nimbus.schemas.RunConfig`).
     """
-    cfg_file = run / "config.json"
+    from nimbus.schemas import RunConfig, read_json_file
+
     fix = "it is not a config.json written by nimbus-train; restore it or start a new run with --out"
-    try:
-        saved = json.loads(cfg_file.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as e:
-        raise NimbusError(f"cannot read {cfg_file} ({e.__class__.__name__}); check its permissions") from None
-    except (ValueError, RecursionError) as e:
-        raise NimbusError(f"{cfg_file} is not valid JSON ({str(e)[:120]}); {fix}") from None
-    if not isinstance(saved, dict):
-        raise NimbusError(f"{cfg_file} holds a {type(saved).__name__}, not an object; {fix}")
-    for key, kind in (("method", str), ("scene", str), ("seed", int), ("config", dict)):
-        if key not in saved:
-            raise NimbusError(f"{cfg_file} has no {key!r}; {fix}")
-        if not isinstance(saved[key], kind) or isinstance(saved[key], bool):
-            raise NimbusError(f"{cfg_file}: {key!r} is {saved[key]!r}, expected a {kind.__name__}; {fix}")
-    check_seed(saved["seed"], f"{cfg_file}: 'seed'")
-    load_args = saved.get("scene_load_args") or {}
-    if (not isinstance(load_args, dict) or not set(load_args) <= set(SCENE_LOAD_ARGS)
-            or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in load_args.values())):
-        raise NimbusError(f"{cfg_file}: 'scene_load_args' is {load_args!r}, expected {{\"downscale\": N}} with "
-                          f"N >= 1 (or nothing); {fix}")
-    return {**saved, "scene_load_args": load_args}
+    saved = read_json_file(run / "config.json", RunConfig, fix)
+    return {**saved, "scene_load_args": saved.get("scene_load_args") or {}}
 
 
 def config_record(config) -> dict:

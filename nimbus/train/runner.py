@@ -188,7 +188,11 @@ class Runner:
         if not cfg_file.is_file() or not ckpt.is_file():
             raise NimbusError(f"{run} is not a run folder of nimbus-train (needs config.json and {CHECKPOINT})")
         saved = read_run_config(run)
-        config_cls = type(get_method(saved["method"]).preset("tiny"))
+        try:
+            method = get_method(saved["method"])
+        except NimbusError as e:  # a name the file holds, not one the user typed: say which file
+            raise NimbusError(f"{cfg_file}: field 'method': {e}") from None
+        config_cls = type(method.preset("tiny"))
         try:
             config = config_from_record(config_cls, saved["config"])
         except (TypeError, ValueError, NimbusError) as e:
