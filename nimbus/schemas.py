@@ -77,8 +77,8 @@ class ResultRecord(Schema):
 
     # What the cell is (benchmark.cell.Cell).
     cell_id: Text = Field(description="the cell's id; names its run folder, lock and thumbnails (one file name)")
-    scene: Text = Field(description="built-in scene name")
-    size: Text = Field(description="built-in scene size")
+    scene: Text = Field(description="scene name: a built-in scene, or a scene folder's name")
+    size: Text = Field(description="built-in scene size, or the image folder of a scene folder (images, images_N)")
     weather: Text = Field(description="weather setting (H, R+S, H@physical, ...) or clean")
     method: Text = Field(description="registered method name")
     preset: Text = Field(description="trainer preset")
@@ -116,6 +116,7 @@ class ResultRecord(Schema):
     output_sha256: Optional[dict[str, str]] = Field(default=None, description="render name -> sha256")
     scene_path: Optional[str] = Field(default=None, description="the scene folder the cell trained on")
     scene_hash: Optional[str] = Field(default=None, description="a hash of that scene's content")
+    eval_protocol: Optional[str] = Field(default=None, description="the evaluation protocol (default, paper)")
     versions: Optional[dict] = None
     protocol: Optional[dict] = None
     host: Optional[str] = None

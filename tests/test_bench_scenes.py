@@ -163,16 +163,17 @@ def test_a_store_refuses_two_scenes_of_one_name(data, tmp_path, capsys):
     assert scene_hash(other) != scene_hash(clean)
     root = tmp_path / "root"
     root.mkdir()
-    ResultsStore(root).append({"cell_id": "mygarden_H_3dgs_tiny_s0", "status": "ok", "scene": "mygarden",
-                               "size": "images", "scene_path": str(clean), "scene_hash": scene_hash(clean)})
+    cell = {"status": "ok", "scene": "mygarden", "size": "images", "method": "3dgs", "preset": "tiny", "seed": 0}
+    ResultsStore(root).append({**cell, "cell_id": "mygarden_H_3dgs_tiny_s0", "weather": "H",
+                               "scene_path": str(clean), "scene_hash": scene_hash(clean)})
     before = (root / "results.jsonl").read_bytes()
     assert run_cli(TOOL.run, RUN + ["--scenes", str(other), "--weathers", "H", "--root", str(root)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "already holds a scene named 'mygarden'" in err and "Traceback" not in err
     assert (root / "results.jsonl").read_bytes() == before and not (root / "data").exists()
     # A store that mixes them anyway (records merged by hand) is refused by every reader.
-    ResultsStore(root).append({"cell_id": "mygarden_R_3dgs_tiny_s0", "status": "ok", "scene": "mygarden",
-                               "size": "images", "scene_path": str(other), "scene_hash": scene_hash(other)})
+    ResultsStore(root).append({**cell, "cell_id": "mygarden_R_3dgs_tiny_s0", "weather": "R",
+                               "scene_path": str(other), "scene_hash": scene_hash(other)})
     with pytest.raises(NimbusError, match="mixes two scenes named 'mygarden'"):
         load_results(root)
     check_scene_hashes(ResultsStore(root).records()[:1], "one record")  # one scene alone is fine
