@@ -316,7 +316,7 @@ def test_nan_sparse_point_in_a_colmap_model_is_refused(tmp_path):
     ({"cx": None, "w": 0}, "w must be a positive whole number"),
     ({"w": 16.5}, "w must be a positive whole number"),
     ({"h": True}, "h must be a number"),
-    ({"camera_angle_x": 0.0, "fl_x": None}, "fl_x must be finite"),
+    ({"camera_angle_x": 0.0, "fl_x": None}, "camera_angle_x=0 radians"),
     ({"k1": float("nan")}, "k1 must be finite"),
 ])
 def test_invalid_camera_values_in_transforms_json_name_the_file_and_frame(tmp_path, change, message):
@@ -620,3 +620,78 @@ def test_a_damaged_png_is_refused_naming_the_file(tmp_path):
         (tmp_path / name).write_bytes(data)
         with pytest.raises(NimbusError, match=rf"image .*{name} is (unreadable or corrupt|truncated)"):
             read_image(tmp_path / name)
+
+
+# --- 7. no silent garbage: camera values that load but mean nothing (issue 35, item 7) ----------------------
+# A field of view of 180 degrees or more, a focal length in the wrong unit and a quaternion that is no rotation were
+# read without a word: pycolmap normalises a zero quaternion into some rotation, and a near-zero focal length renders
+# a few pixels of the scene across the whole image.  Each is refused naming the file and the field.
+@pytest.mark.parametrize("angle", [np.pi, 3.0, -1.0], ids=["180deg", "172deg-read", "negative"])
+def test_a_transforms_field_of_view_of_180_degrees_or_more_is_refused(tmp_path, angle):
+    root = _transforms_scene(tmp_path, top={"camera_angle_x": angle})
+    meta = json.loads((root / "transforms.json").read_text())
+    meta.pop("fl_x"), meta.pop("fl_y")
+    (root / "transforms.json").write_text(json.dumps(meta))
+    if np.degrees(angle) < 175 and angle > 0:  # wide but a pinhole: read
+        assert load_scene(root).views[0].camera.fov_x == pytest.approx(angle)
+        return
+    with pytest.raises(NimbusError, match=r"transforms.json: frame 0 \(images/0.png\): camera_angle_x=.* not a "
+                                          r"pinhole field of view"):
+        load_scene(root)
+
+
+def test_a_transforms_focal_length_that_sees_180_degrees_is_refused(tmp_path):
+    root = _transforms_scene(tmp_path, frame0={"fl_y": 1e-6})
+    with pytest.raises(NimbusError, match=r"transforms.json: frame 0 \(images/0.png\): fy=1e-06 gives a vertical "
+                                          r"field of view of 180 degrees"):
+        load_scene(root)
+
+
+@pytest.mark.parametrize("focal", [1e-9, 0.05])
+def test_a_colmap_focal_length_that_sees_180_degrees_is_refused(tmp_path, focal):
+    sparse = _colmap_scene(tmp_path) / "sparse" / "0"
+    data = bytearray((sparse / "cameras.bin").read_bytes())
+    data[8 + 24:8 + 32] = struct.pack("<d", focal)  # fx of camera 1
+    (sparse / "cameras.bin").write_bytes(bytes(data))
+    with pytest.raises(NimbusError, match=rf"camera 1 in .*sparse/0 \(image '000.png'\): fx={focal:g} gives a "
+                                          r"horizontal field of view of 1\d\d(\.\d+)? degrees"):
+        load_scene(sparse.parent.parent)
+
+
+@pytest.mark.parametrize("where", ["frames.bin", "images.bin", "frames.txt", "images.txt"])
+@pytest.mark.parametrize("quaternion", [(0, 0, 0, 0), (2, 0, 0, 0)], ids=["zero", "scaled"])
+def test_a_colmap_quaternion_that_is_no_rotation_is_refused(tmp_path, where, quaternion):
+    text = where.endswith(".txt")
+    sparse = _colmap_scene(tmp_path, text=text) / "sparse" / "0"
+    f = sparse / where
+    if where == "images.bin":  # the legacy layout, where the pose is the image's
+        (sparse / "rigs.bin").unlink()
+        (sparse / "frames.bin").unlink()
+    if text:
+        lines = f.read_text().splitlines()
+        first = next(i for i, line in enumerate(lines) if line and not line.startswith("#"))
+        tokens = lines[first].split()
+        at = 1 if where == "images.txt" else 2
+        tokens[at:at + 4] = [str(v) for v in quaternion]
+        lines[first] = " ".join(tokens)
+        f.write_text("\n".join(lines) + "\n")
+        match = rf"{where} line {first + 1}: its rotation quaternion .* has norm {np.linalg.norm(quaternion):g}"
+    else:
+        data = bytearray(f.read_bytes())
+        at = 8 + (4 if where == "images.bin" else 8)
+        data[at:at + 32] = struct.pack("<4d", *quaternion)
+        f.write_bytes(bytes(data))
+        match = rf"{where} is corrupt .*(image|frame) 1: its rotation quaternion .* has norm"
+    with pytest.raises(NimbusError, match=match):
+        load_scene(sparse.parent.parent)
+
+
+def test_a_colmap_quaternion_rounded_to_a_few_digits_is_read(tmp_path):
+    sparse = _colmap_scene(tmp_path, text=True) / "sparse" / "0"
+    lines = (sparse / "images.txt").read_text().splitlines()
+    first = next(i for i, line in enumerate(lines) if line and not line.startswith("#"))
+    tokens = lines[first].split()
+    tokens[1:5] = [f"{float(v):.3f}" for v in tokens[1:5]]
+    lines[first] = " ".join(tokens)
+    (sparse / "images.txt").write_text("\n".join(lines) + "\n")
+    assert len(load_scene(sparse.parent.parent).views) == 3
