@@ -49,7 +49,7 @@ from pathlib import Path
 from typing import Iterator
 
 from nimbus.errors import NimbusError
-from nimbus.utils.fs import confined_path, single_name
+from nimbus.utils.fs import confined_path, refuse_nonfinite_record, shown, single_name
 
 STORE_FILE = "results.jsonl"
 LOCK_DIR = "locks"
@@ -159,6 +159,7 @@ class ResultsStore:
         """
         if "cell_id" not in record:
             raise ValueError("a record needs a cell_id")
+        refuse_nonfinite_record(record, f"a record of cell {shown(record['cell_id'])} to {self.path}")
         line = (json.dumps(record, sort_keys=True, allow_nan=False) + "\n").encode()
         self.root.mkdir(parents=True, exist_ok=True)
         fd = os.open(self.path, os.O_RDWR | os.O_APPEND | os.O_CREAT | os.O_CLOEXEC, 0o644)

@@ -351,3 +351,33 @@ def test_random_initial_points_are_sized_before_they_are_drawn():
                                           r"initial Gaussians"):
         GaussianSplatting(scene, dataclasses.replace(GS_PRESETS["tiny"], init_random_points=INT_MAX))
     assert GaussianSplatting(scene, dataclasses.replace(GS_PRESETS["tiny"], init_random_points=50)).num_gaussians == 50
+
+
+# --- weather amounts beyond a physical bound (issue 35, item 7) ------------------------------------------------------
+# rain.density_scale=1e12 asked for 1e12 streaks per pixel (the seeds alone ran out of memory), a length or size
+# scale of 1e6 made a motion kernel or flake canvas the size of a city; rain.amount=1e6 clipped every streak to
+# white without a word.  Each bound is where the rain or snow stops changing (see weather_synth/rain.py, snow.py).
+@pytest.mark.parametrize("item, accepted", [
+    ("rain.amount=1e6", "a number in [0, 10] (10: every streak peaks at white)"),
+    ("rain.density_scale=1e12", "a number in [0, 1000]"),
+    ("rain.length_scale=1e6", "a number in [0, 5]"),
+    ("snow.amount=1e4", "a number in [0, 250]"),
+    ("snow.size_scale=1e6", "a number in [0, 5]"),
+])
+def test_a_weather_amount_beyond_its_bound_is_refused_through_set(item, accepted):
+    with pytest.raises(NimbusError) as e:
+        apply_overrides(protocol_config(), parse_set_args([item]))
+    assert str(e.value).startswith(f"--set {item}: must be ") and accepted in str(e.value)
+
+
+def test_the_weather_bounds_admit_the_stability_storm_and_the_presets():
+    from weather_synth.rain import MAX_RAIN_AMOUNT, rain_preset
+    from weather_synth.snow import MAX_SNOW_AMOUNT, snow_preset
+
+    cfg = apply_overrides(protocol_config(), parse_set_args(["rain.density_scale=100", "snow.amount=100",
+                                                             f"rain.amount={MAX_RAIN_AMOUNT}"]))
+    assert cfg.rain.density_scale == 100 and cfg.snow.amount == 100
+    for name in ("light", "medium", "heavy"):
+        SynthConfig(rain=rain_preset(name), snow=snow_preset(name))
+    with pytest.raises(NimbusError, match=r"amount=250\.5: must be a number in \[0, 250\]"):
+        SynthConfig(snow=snow_preset("heavy", amount=MAX_SNOW_AMOUNT + 0.5))

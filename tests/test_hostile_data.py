@@ -695,3 +695,60 @@ def test_a_colmap_quaternion_rounded_to_a_few_digits_is_read(tmp_path):
     lines[first] = " ".join(tokens)
     (sparse / "images.txt").write_text("\n".join(lines) + "\n")
     assert len(load_scene(sparse.parent.parent).views) == 3
+
+
+# --- 8. round 2: a duplicated PLY property, names too long for the file system, non-finite exports ----------
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian"])
+def test_a_ply_with_a_duplicated_property_is_refused(tmp_path, fmt):
+    """numpy refused the binary record type with a traceback; the ASCII reader silently took the last column."""
+    head = PLY_HEAD.format(fmt=fmt, element="element vertex 1\n").replace("property float z\n",
+                                                                          "property float z\nproperty float x\n")
+    body = "1 2 3 4\n" if fmt == "ascii" else struct.pack("<4f", 1, 2, 3, 4).decode("latin-1")
+    (tmp_path / "p.ply").write_bytes((head + body).encode("latin-1"))
+    with pytest.raises(NimbusError, match=r"p.ply: the vertex property 'x' is declared more than once"):
+        read_ply_points(tmp_path / "p.ply")
+
+
+@pytest.mark.parametrize("where", ["transforms", "colmap", "split list"])
+def test_a_name_longer_than_the_file_system_allows_is_refused(tmp_path, where):
+    long = "a" * 300 + ".png"
+    if where == "transforms":
+        root = _transforms_scene(tmp_path, frame0={"file_path": f"images/{long}"})
+        match = r"frame 0 .*file_path name .* has a part of 304 bytes; file systems take at most 255"
+    elif where == "colmap":
+        sparse = _colmap_scene(tmp_path, text=True) / "sparse" / "0"
+        text = (sparse / "images.txt").read_text()
+        (sparse / "images.txt").write_text(text.replace(" 000.png", f" {long}", 1))
+        root, match = sparse.parent.parent, r"image name in .*images.txt name .* has a part of 304 bytes"
+    else:
+        root = _colmap_scene(tmp_path)
+        (root / "test_list.txt").write_text(long + "\n")
+        match = r"test_list.txt.* has a part of 304 bytes"
+    with pytest.raises(NimbusError, match=match):
+        load_scene(root)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_a_rendered_image_with_non_finite_values_is_not_written(tmp_path, bad):
+    """to_uint8 turned NaN into black and inf into white without a word."""
+    img = np.full((4, 6, 3), 0.5, np.float32)
+    img[1, 2, 0] = bad
+    with pytest.raises(NimbusError, match=r"refusing to write image .*r.png: 1 of 72 values are NaN or inf "
+                                          r"\(the first at index \(1, 2, 0\)\)"):
+        write_image(tmp_path / "r.png", img)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_depth_map_with_nan_is_not_written_and_inf_is_sky(tmp_path):
+    from nimbus.data.images import write_depth
+
+    depth = np.ones((4, 6), np.float32)
+    depth[0, 0] = np.inf  # sky: kept
+    write_depth(tmp_path / "ok.npy", depth)
+    assert np.isinf(read_depth(tmp_path / "ok.npy")[0, 0])
+    for bad in (np.nan, -np.inf):
+        depth[3, 5] = bad
+        with pytest.raises(NimbusError, match=r"refusing to write depth map .*bad.npy: 1 of 24 values are NaN or "
+                                              r"-inf \(the first at index \(3, 5\)\)"):
+            write_depth(tmp_path / "bad.npy", depth)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ok.npy"]

@@ -80,7 +80,7 @@ import numpy as np
 
 from nimbus import __version__
 from nimbus.data.camera import Camera
-from nimbus.data.images import encode_png, to_uint8
+from nimbus.data.images import encode_png, refuse_nonfinite, to_uint8
 from nimbus.data.io import SCENE_FORMATS, write_scene_into
 from nimbus.data.scene import Scene, View
 from nimbus.errors import NimbusError
@@ -291,11 +291,15 @@ def degrade_scene(scene: Scene, out: str | os.PathLike, settings: Sequence[Weath
     out = check_dataset_out(out, overwrite, scene_inputs(scene))
     check_view_names(scene, out)
     created = [p for p in (out, *out.parents) if not p.exists()]  # deepest first
+    existed = {s.name for s in settings if (out / s.name).exists()}
     try:
         return _degrade_into(scene, out, settings, config, progress, source)
     except BaseException:
-        # Complete settings stay (a rerun with --overwrite replaces them); folders this call made and
-        # left empty go, so a failed run leaves nothing behind.
+        # A failed run (a full disk, a corrupt image in the fifth setting, Ctrl-C) leaves none of the settings it
+        # wrote: one setting of seven is not the dataset asked for.  A setting an --overwrite already replaced
+        # is complete and stays (its old version is gone); folders this call made and left empty go too.
+        for name in {s.name for s in settings} - existed:
+            shutil.rmtree(out / name, ignore_errors=True)
         for p in created:
             with contextlib.suppress(OSError):
                 p.rmdir()
@@ -332,6 +336,7 @@ def _degrade_into(scene: Scene, out: Path, settings: Sequence[WeatherSetting], c
                         input_sums[view.name] = _input_sha256(view, J)
                     res = synth.degrade(view, setting, J)
                     out_name = png_name(view.name)
+                    refuse_nonfinite(res.image, f"the degraded view {view.name} of setting {setting.name}")
                     degraded = to_uint8(res.image)
                     image_bytes = encode_png(degraded)
                     atomic_write_bytes(confined_path(tmp / DEGRADED_STAGING_DIR, out_name, "view"), image_bytes)

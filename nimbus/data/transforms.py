@@ -461,6 +461,10 @@ def read_ply_points(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     if count is None:
         raise NimbusError(f"{path}: the PLY header declares no vertices ('element vertex COUNT'); re-export the points")
     names = [p[0] for p in props]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:  # which column is "x" would be a guess (numpy refuses the record type; the ASCII path took the last)
+        raise NimbusError(f"{path}: the vertex property {', '.join(map(repr, twice[:4]))} is declared more than once; "
+                          "each property names one column: re-export the points")
     if not {"x", "y", "z"} <= set(names):
         raise NimbusError(f"{path}: vertices have no x, y, z")
     if fmt == "ascii":
