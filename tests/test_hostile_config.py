@@ -429,3 +429,25 @@ def test_ctrl_c_stops_a_march_that_would_run_for_hours(direction):
     finally:
         child.kill()
     assert out.strip() == "interrupted"
+
+
+# Size-like synthesis settings the memory estimate does not cover: at 2**31 each ended in a traceback (a box filter's
+# bad_alloc, a 16 GiB table or slice list) or ran for minutes (fog octaves).  Each has a bound where more stops
+# mattering (weather_synth/haze.py, rain.py, snow.py), refused before anything is read or written.
+@pytest.mark.parametrize("item, accepted", [
+    ("haze.box_size=2147483647", "an integer in 1..4096"),
+    ("haze.fog_table_samples=2147483647", "an integer in 1..4096"),
+    ("haze.fog_noise_octaves=2147483647", "an integer in 1..16"),
+    ("rain.slices=2147483647", "an integer in 1..64"),
+    ("snow.slices=2147483647", "an integer in 1..64"),
+])
+def test_a_huge_synthesis_size_is_one_error_line_before_anything_is_written(tmp_path, scene_dir, capsys, item,
+                                                                             accepted):
+    from weather_synth.cli import main
+
+    out = tmp_path / "bench"
+    code, err = _run(main, ["degrade", scene_dir, "--out", out, "--weather", "H,R,S", "--quiet", "--protocol",
+                            "physical", "--haze-mode", "heterogeneous", "--set", item], capsys)
+    assert code == 2 and "Traceback" not in err and err.strip().splitlines() == [err.strip()], err
+    assert err.startswith(f"error: --set {item}: must be {accepted}")
+    assert list(tmp_path.iterdir()) == []

@@ -40,6 +40,9 @@ from weather_synth.particles import (
 )
 
 RAIN_PRESETS = ("light", "medium", "heavy")
+#: Depth slices per streak layer at most: each is a full-image layer (memory grows with it), and 64 depths are finer
+#: than the eye tells apart.
+MAX_SLICES = 64
 # Bounds beyond which rain stops being rain (issue 35: absurd amounts gave silent garbage, or allocated without end).
 #: amount multiplies a streak's peak brightness: at 10 the faintest default layer (0.10-0.20) already peaks at white,
 #: so more only clips every streak to white.
@@ -121,7 +124,8 @@ class RainConfig:
         "amount": between(0, MAX_RAIN_AMOUNT, note="10: every streak peaks at white"),
         "density_scale": between(0, MAX_RAIN_DENSITY_SCALE, note="1000: 3 streaks on every pixel"),
         "length_scale": between(0, MAX_RAIN_LENGTH_SCALE, note="5: the longest streak nearly spans the image"),
-        "angle_jitter": between(0, 90, note="degrees"), "slices": at_least(1),
+        "angle_jitter": between(0, 90, note="degrees"),
+        "slices": between(1, MAX_SLICES, note="full-image layers per streak layer"),
     }
 
     def __post_init__(self) -> None:

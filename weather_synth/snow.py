@@ -36,6 +36,9 @@ from weather_synth.particles import (
 )
 
 SNOW_PRESETS = ("light", "medium", "heavy")
+#: Depth slices per class at most: each is a full-image layer (memory grows with it), and 64 depths are finer
+#: than the eye tells apart.
+MAX_SLICES = 64
 # Bounds beyond which snow stops being snowfall (issue 35: absurd amounts gave silent garbage).
 #: amount multiplies flakes per pixel: at 250 the small class alone drops one flake on every reference pixel, and
 #: the image is a white veil; more changes nothing.
@@ -117,7 +120,7 @@ class SnowConfig:
     LIMITS: ClassVar[dict[str, Limit]] = {
         "amount": between(0, MAX_SNOW_AMOUNT, note="250: a flake on every pixel"),
         "size_scale": between(0, MAX_SNOW_SIZE_SCALE, note="5: flakes 25 pixels in radius"), "color": fraction(),
-        "slices": at_least(1),
+        "slices": between(1, MAX_SLICES, note="full-image layers per class"),
     }
 
     def __post_init__(self) -> None:
