@@ -49,10 +49,12 @@ The manifest's ``input.point_colours`` records the rule and the counts.
 So 3DGS, gsplat or nerfstudio train on ``OUT/H+R`` directly and a benchmark
 scores renders against ``clean/``.  Views are processed one at a time (memory
 does not grow with the number of views); every setting folder is written
-atomically (a temporary folder renamed into place when complete), so an
-interrupted run leaves only complete settings, and a run that fails before
-its first setting is complete leaves no ``OUT`` (nor parent folder) that it
-made.  A temporary folder left by a killed run (``OUT/.SETTING.tmp-*``, whose
+atomically (a temporary folder renamed into place when complete), and a run
+that fails or is interrupted (a full disk, a corrupt image, Ctrl-C) removes
+every setting it wrote, and the ``OUT`` (and parent folders) it made: one
+setting of seven is not the dataset asked for.  Only a setting that an
+``--overwrite`` run had already replaced stays (complete; its old version is
+gone).  A kill -9 leaves complete settings and a temporary folder.  A temporary folder left by a killed run (``OUT/.SETTING.tmp-*``, whose
 owner process is gone) is removed by the next run.  The same input, config
 and seed give the same bytes.
 
@@ -270,8 +272,9 @@ def degrade_scene(scene: Scene, out: str | os.PathLike, settings: Sequence[Weath
     out : path
         Output folder; refused when non-empty unless ``overwrite`` (then each
         written setting folder replaces its old version atomically), and when
-        it is, contains or lies inside one of the scene's inputs.  A folder this
-        call creates is removed again when it fails before a setting is complete.
+        it is, contains or lies inside one of the scene's inputs.  When the call
+        fails, the settings it wrote and the folders it made are removed again
+        (module docstring).
     settings : sequence of WeatherSetting
     config : SynthConfig
     overwrite : bool
