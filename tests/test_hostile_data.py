@@ -752,3 +752,32 @@ def test_a_depth_map_with_nan_is_not_written_and_inf_is_sky(tmp_path):
                                               r"-inf \(the first at index \(3, 5\)\)"):
             write_depth(tmp_path / "bad.npy", depth)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ok.npy"]
+
+
+def test_a_write_under_a_name_too_long_is_one_error_and_leaves_nothing(tmp_path):
+    from nimbus.utils.fs import atomic_write_bytes
+
+    with pytest.raises(NimbusError, match=r"the file name 'xxx.* is too long for the file system of .* \(300 bytes "
+                                          r"in one name; most take 255\)"):
+        atomic_write_bytes(tmp_path / ("x" * 300), b"data")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_full_disk_met_outside_the_atomic_writers_is_one_error_line(tmp_path, capsys):
+    """A log line, a library's own file: run_cli turns ENOSPC into one line naming the folder (exit 2)."""
+    import errno
+
+    from nimbus.cli_util import run_cli
+
+    def main(argv):
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "run" / "train_log.jsonl"))
+
+    assert run_cli(main, []) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.splitlines() == [err] and err.startswith(f"error: no space left on the device of {tmp_path / 'run'}")
+
+    def bug(argv):
+        raise OSError(errno.EIO, "Input/output error")  # not the user's to fix: a traceback as before
+
+    with pytest.raises(OSError):
+        run_cli(bug, [])

@@ -46,10 +46,10 @@ def write_problem(e: OSError, path: str | os.PathLike | None, need: int | None =
         return NimbusError(f"no space left on the device of {folder}{needed}; free some space or choose another "
                            "output folder (the file was not written; nothing partial was kept)")
     if e.errno == errno.ENAMETOOLONG:
-        name = Path(e.filename if isinstance(e.filename, str) else str(path))
+        name = path if path is not None else Path(str(e.filename))
         longest = max((len(part.encode("utf-8", "surrogateescape")) for part in name.parts), default=0)
         return NimbusError(f"the file name {shown(name.name)} is too long for the file system of {name.parent} "
-                           f"({longest} bytes in one name; most take 255): rename the input it comes from")
+                           f"({longest} bytes in one name; most take {NAME_MAX}): rename the input it comes from")
     return None
 
 
