@@ -781,3 +781,13 @@ def test_a_full_disk_met_outside_the_atomic_writers_is_one_error_line(tmp_path, 
 
     with pytest.raises(OSError):
         run_cli(bug, [])
+
+
+def test_a_json_output_with_nan_is_not_written_and_an_infinite_psnr_is(tmp_path):
+    from nimbus.utils.fs import atomic_write_json
+
+    with pytest.raises(NimbusError, match=r"refusing to write .*results.json: its field per_view.a.psnr is NaN"):
+        atomic_write_json(tmp_path / "results.json", {"psnr": 20.0, "per_view": {"a": {"psnr": float("nan")}}})
+    assert list(tmp_path.iterdir()) == []
+    atomic_write_json(tmp_path / "results.json", {"psnr": float("inf")})  # identical images
+    assert json.loads((tmp_path / "results.json").read_text())["psnr"] == float("inf")

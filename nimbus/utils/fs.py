@@ -87,41 +87,42 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     return atomic_write_bytes(path, text.encode("utf-8"))
 
 
-def nonfinite_field(obj: Any, where: str = "") -> str | None:
-    """The key path (``psnr``, ``per_view[3].ssim``) of the first NaN or infinite float in a JSON-ready ``obj``, or
-    None.  JSON has no NaN: Python would write a bare ``NaN`` token that other readers refuse, and a NaN score
-    sorts and averages as garbage."""
+def nonfinite_field(obj: Any, where: str = "", allow_inf: bool = False) -> str | None:
+    """The key path (``psnr``, ``per_view[3].ssim``) of the first NaN (or, unless ``allow_inf``, infinite) float in
+    a JSON-ready ``obj``, or None.  A NaN score sorts and averages as garbage, and strict JSON has neither."""
     if isinstance(obj, float):
-        return None if math.isfinite(obj) else (where or "the value")
+        return None if math.isfinite(obj) or (allow_inf and not math.isnan(obj)) else (where or "the value")
     if isinstance(obj, dict):
         for k, v in obj.items():
-            found = nonfinite_field(v, f"{where}.{k}" if where else str(k))
+            found = nonfinite_field(v, f"{where}.{k}" if where else str(k), allow_inf)
             if found:
                 return found
     elif isinstance(obj, (list, tuple)):
         for i, v in enumerate(obj):
-            found = nonfinite_field(v, f"{where}[{i}]")
+            found = nonfinite_field(v, f"{where}[{i}]", allow_inf)
             if found:
                 return found
     return None
 
 
-def refuse_nonfinite_record(obj: Any, what: str) -> None:
-    """NimbusError naming ``what`` (a file, a store) and the field when ``obj`` holds a NaN or infinite float."""
-    field = nonfinite_field(obj)
+def refuse_nonfinite_record(obj: Any, what: str, allow_inf: bool = False) -> None:
+    """NimbusError naming ``what`` (a file, a store) and the field when ``obj`` holds a NaN (or, unless
+    ``allow_inf``, an infinite) float."""
+    field = nonfinite_field(obj, allow_inf=allow_inf)
     if field is not None:
-        raise NimbusError(f"refusing to write {what}: its field {field} is not a finite number (NaN or inf); "
-                          "a record with it would read back as garbage. Nothing was written")
+        kind = "NaN" if allow_inf else "not a finite number (NaN or inf)"
+        raise NimbusError(f"refusing to write {what}: its field {field} is {kind}; a record with it would read "
+                          "back as garbage. Nothing was written")
 
 
 def atomic_write_json(path: str | os.PathLike, obj: Any) -> Path:
     """Write ``obj`` as indented, key-sorted JSON (stable bytes for the same object).
 
-    A NaN or infinite float is refused (:func:`refuse_nonfinite_record`): convert it first where it means
-    something (``jsonable(..., nonfinite="text")``).
+    A NaN is refused (:func:`refuse_nonfinite_record`), naming the field.  An infinity still means something in
+    these files (the PSNR of identical images) and is written as Python's ``Infinity``.
     """
-    refuse_nonfinite_record(obj, str(path))
-    return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, allow_nan=False) + "\n")
+    refuse_nonfinite_record(obj, str(path), allow_inf=True)
+    return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
 
 
 #: The longest name (one path component) Linux, macOS and Windows file systems take, in bytes.
