@@ -30,9 +30,9 @@ from nimbus.errors import NimbusError
 ROTATION_TOLERANCE = 1e-5
 #: The widest field of view (degrees, horizontal or vertical) a camera read from a scene file may have.  A pinhole
 #: image of 180 degrees or more does not exist (the focal length would be 0 or negative), and one this close to it is
-#: a focal length typed in the wrong unit: at 175 degrees the focal length is 1/23 of the image width, and the
-#: image's corners are magnified about 130 times more than its centre.  Undistorted wide-angle captures stay well
-#: below (a 120-degree action camera: f = 0.29 x width).
+#: a focal length typed in the wrong unit: at 175 degrees the focal length is 1/46 of the image width, and the
+#: image's edge is stretched radially about 500 times more than its centre (1 / cos^2 of 87.5 degrees).  Undistorted
+#: wide-angle captures stay well below (a 120-degree action camera: f = 0.29 x width).
 MAX_FIELD_OF_VIEW_DEG = 175.0
 
 
