@@ -168,7 +168,7 @@ def test_a_numeric_field_without_a_limit_is_a_programming_error():
     ("haze.fog_grid=0", "an integer >= 1"),
     ("haze.mode=fog", "one of onerestore, homogeneous, heterogeneous"),
     ("haze.quantize_depth=2", "true or false"),  # 1 / 0 are true / false, as for the trainer's booleans
-    ("rain.slices=2.5", "an integer >= 1"),
+    ("rain.slices=2.5", "an integer in 1..64"),
     ("rain.angle_jitter=-Infinity", "a number in [0, 90]"),
     ("snow.color=2", "a number in [0, 1]"),
     ("depth.guided_eps=0", "a finite number > 0"),
