@@ -564,24 +564,22 @@ def test_a_full_disk_at_the_first_checkpoint_leaves_no_run_folder(tmp_path, caps
     assert list(tmp_path.iterdir()) == []  # no run folder, no temporary file, no parent made for it
 
 
-def test_a_full_disk_after_a_checkpoint_leaves_a_run_that_resumes(tmp_path, capsys, disk_full):
+def test_a_full_disk_after_a_checkpoint_leaves_a_run_that_resumes(tmp_path, capsys):
+    from conftest import _fill_disk_for
+
     out = tmp_path / "run"
     with pytest.MonkeyPatch.context() as m:
         real = Runner.finish
 
         def finish(self):  # the disk fills up once training is done, as the renders are written
-            _fill(m)
+            _fill_disk_for(m, ".png.tmp-")
             return real(self)
-
-        def _fill(mp):
-            from conftest import _fill_disk_for
-            _fill_disk_for(mp, ".png.tmp-")
 
         m.setattr(Runner, "finish", finish)
         code, err = cli(["builtin:garden:tiny", *FAST, "--out", out], capsys)
     assert_one_error(code, err, "no space left on the device of", "renders")
     assert (out / CHECKPOINT).is_file() and not (out / "results.json").exists()
-    assert not [p for p in out.rglob(".*tmp-*")]  # no temporary file left behind
+    assert not list(out.rglob(".*tmp-*"))  # no temporary file left behind
     code, err = cli(["--resume", out, "--quiet"], capsys)  # space freed: the run finishes
     assert code == 0, err
     assert (out / "results.json").is_file()
