@@ -58,7 +58,7 @@ from typing import Iterable, Iterator
 
 from nimbus.errors import NimbusError, SkippedRecordWarning
 from nimbus.schemas import ResultRecord, parse_json, problem
-from nimbus.utils.fs import confined_path, single_name
+from nimbus.utils.fs import confined_path, refuse_nonfinite_record, shown, single_name
 
 STORE_FILE = "results.jsonl"
 LOCK_DIR = "locks"
@@ -183,6 +183,8 @@ class ResultsStore:
         A torn last line (a writer killed mid-write) is cut off first, under the same lock, so
         it can never be glued to this record and no concurrent writer's line is cut instead.
         """
+        if "cell_id" in record:  # a non-finite score: one line naming the field (NimbusError)
+            refuse_nonfinite_record(record, f"a record of cell {shown(record['cell_id'])} to {self.path}")
         why = problem(ResultRecord, record)
         if why is not None:  # a writer's bug: such a line would be skipped by every reader
             raise ValueError(f"a results record {why} (nimbus.schemas.ResultRecord)")

@@ -68,6 +68,16 @@ def run_cli(main: Callable[[Sequence[str] | None], int], argv: Sequence[str] | N
     except KeyboardInterrupt:
         print("error: interrupted", file=sys.stderr)
         return 130
+    except OSError as e:
+        # A full disk or a name too long for the file system, met by a write outside the atomic writers (a log
+        # line, a library's own file): the user's to fix, so one line too.  Any other OSError is a bug's traceback.
+        from nimbus.utils.fs import write_problem
+
+        problem = write_problem(e, e.filename if isinstance(e.filename, str) else None)
+        if problem is None:
+            raise
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
     finally:
         warnings.showwarning = shown
 

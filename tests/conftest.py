@@ -94,3 +94,52 @@ def _interrupt_and_resume(make_runner, after: int):
 def interrupt_and_resume():
     """``interrupt_and_resume(make_runner, after)``: a run interrupted after step ``after``, resumed (see above)."""
     return _interrupt_and_resume
+
+
+def _fill_disk_for(monkeypatch, pattern: str, after_bytes: int = 0) -> list:
+    """Make every file opened for writing through ``os.fdopen`` (what the atomic writers use) whose path holds
+    ``pattern`` fail with ENOSPC once ``after_bytes`` are written, as a full disk does, without filling one.
+    Returns the list of paths that failed."""
+    import errno
+    import os
+
+    real = os.fdopen
+    failed = []
+
+    class Full:
+        def __init__(self, f, path):
+            self._f, self._path = f, path
+
+        def write(self, data):
+            self._f.write(bytes(data)[:after_bytes])
+            failed.append(self._path)
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def __getattr__(self, name):
+            return getattr(self._f, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self._f.close()
+            return False
+
+    def fdopen(fd, mode="r", *args, **kwargs):
+        f = real(fd, mode, *args, **kwargs)
+        if "w" not in mode and "a" not in mode:
+            return f
+        try:
+            path = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            return f
+        return Full(f, path) if pattern in path else f
+
+    monkeypatch.setattr(os, "fdopen", fdopen)
+    return failed
+
+
+@pytest.fixture
+def disk_full(monkeypatch):
+    """``disk_full(pattern)``: writes to files whose path holds ``pattern`` end in ENOSPC (see _fill_disk_for)."""
+    return lambda pattern, after_bytes=0: _fill_disk_for(monkeypatch, pattern, after_bytes)

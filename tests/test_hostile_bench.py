@@ -8,6 +8,7 @@ place) and can be held in flight, so two runners can be made to overlap without 
 from __future__ import annotations
 
 import json
+import re
 import os
 import subprocess
 import sys
@@ -650,3 +651,36 @@ def test_the_store_file_is_what_marks_a_store():
 
     assert STORE_OR_SCENE_FILES[0] == STORE_FILE  # nimbus cannot import benchmark: the name is repeated
     assert OUTPUT_MARKER == MARKER
+
+
+# --- issue 35, round 2: a full disk and non-finite values in records ----------------------------------------------
+def test_a_cell_that_meets_a_full_disk_is_recorded_as_failed_in_one_line(tmp_path, monkeypatch, disk_full):
+    from nimbus.utils.fs import atomic_write_bytes
+
+    def cell_fn(c, root, options):  # a cell whose run writes its checkpoint when the disk is full
+        final, partial = cell_module.clear_run_dirs(Path(root), c)
+        atomic_write_bytes(partial / "checkpoint.pt", bytes(4096))
+        return fake_cell(root, c)
+
+    monkeypatch.setattr(cell_module, "_train_cell", cell_fn)
+    monkeypatch.setattr(cell_module, "_score_cell", lambda record, root, options: {})
+    disk_full(".checkpoint.pt.tmp-")
+    record = cell_module.run_cell(the_cell(), str(tmp_path), OPTIONS)
+    assert record["status"] == "error" and "traceback" not in record, (record.get("error"), record.get("traceback"))
+    assert record["error"].startswith("no space left on the device of ") and "checkpoint.pt needs 4,096 bytes" in \
+        record["error"]
+    assert not list(tmp_path.rglob(".checkpoint.pt.tmp-*"))
+
+
+@pytest.mark.parametrize("field, value, where", [
+    ("psnr", float("nan"), "psnr"),
+    ("per_view", [{"name": "a", "ssim": float("inf")}], "per_view[0].ssim"),
+])
+def test_a_record_with_a_non_finite_value_is_refused_naming_the_field(tmp_path, field, value, where):
+    store = ResultsStore(tmp_path)
+    store.append({"cell_id": "ok", "status": "ok", "psnr": 20.0})
+    before = store.path.read_bytes()
+    with pytest.raises(NimbusError, match=rf"refusing to write a record of cell 'bad' .*: its field "
+                                          rf"{re.escape(where)} is not a finite number"):
+        store.append({"cell_id": "bad", "status": "ok", field: value})
+    assert store.path.read_bytes() == before

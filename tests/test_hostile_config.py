@@ -11,6 +11,12 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
 from pathlib import Path
 
 import pytest
@@ -162,7 +168,7 @@ def test_a_numeric_field_without_a_limit_is_a_programming_error():
     ("haze.fog_grid=0", "an integer >= 1"),
     ("haze.mode=fog", "one of onerestore, homogeneous, heterogeneous"),
     ("haze.quantize_depth=2", "true or false"),  # 1 / 0 are true / false, as for the trainer's booleans
-    ("rain.slices=2.5", "an integer >= 1"),
+    ("rain.slices=2.5", "an integer in 1..64"),
     ("rain.angle_jitter=-Infinity", "a number in [0, 90]"),
     ("snow.color=2", "a number in [0, 1]"),
     ("depth.guided_eps=0", "a finite number > 0"),
@@ -351,3 +357,97 @@ def test_random_initial_points_are_sized_before_they_are_drawn():
                                           r"initial Gaussians"):
         GaussianSplatting(scene, dataclasses.replace(GS_PRESETS["tiny"], init_random_points=INT_MAX))
     assert GaussianSplatting(scene, dataclasses.replace(GS_PRESETS["tiny"], init_random_points=50)).num_gaussians == 50
+
+
+# --- weather amounts beyond a physical bound (issue 35, item 7) ------------------------------------------------------
+# rain.density_scale=1e12 asked for 1e12 streaks per pixel (the seeds alone ran out of memory), a length or size
+# scale of 1e6 made a motion kernel or flake canvas the size of a city; rain.amount=1e6 clipped every streak to
+# white without a word.  Each bound is where the rain or snow stops changing (see weather_synth/rain.py, snow.py).
+@pytest.mark.parametrize("item, accepted", [
+    ("rain.amount=1e6", "a number in [0, 10] (10: every streak peaks at white)"),
+    ("rain.density_scale=1e12", "a number in [0, 1000]"),
+    ("rain.length_scale=1e6", "a number in [0, 5]"),
+    ("snow.amount=1e4", "a number in [0, 250]"),
+    ("snow.size_scale=1e6", "a number in [0, 5]"),
+])
+def test_a_weather_amount_beyond_its_bound_is_refused_through_set(item, accepted):
+    with pytest.raises(NimbusError) as e:
+        apply_overrides(protocol_config(), parse_set_args([item]))
+    assert str(e.value).startswith(f"--set {item}: must be ") and accepted in str(e.value)
+
+
+def test_the_weather_bounds_admit_the_stability_storm_and_the_presets():
+    from weather_synth.rain import MAX_RAIN_AMOUNT, rain_preset
+    from weather_synth.snow import MAX_SNOW_AMOUNT, snow_preset
+
+    cfg = apply_overrides(protocol_config(), parse_set_args(["rain.density_scale=100", "snow.amount=100",
+                                                             f"rain.amount={MAX_RAIN_AMOUNT}"]))
+    assert cfg.rain.density_scale == 100 and cfg.snow.amount == 100
+    for name in ("light", "medium", "heavy"):
+        SynthConfig(rain=rain_preset(name), snow=snow_preset(name))
+    with pytest.raises(NimbusError, match=r"amount=250\.5: must be a number in \[0, 250\]"):
+        SynthConfig(snow=snow_preset("heavy", amount=MAX_SNOW_AMOUNT + 0.5))
+
+
+# --- Ctrl-C inside a compiled loop (issue 35, hole 5) ---------------------------------------------------------------
+# `--set ray_samples=2147483647` is refused by the memory estimate above, but a sample count that fits can still
+# march for minutes in one op, and torch.ops calls run without the GIL: Python only raised KeyboardInterrupt once
+# the op returned.  The march now polls for Ctrl-C between blocks of rays (nimbus/kernels/csrc/interrupt.h).
+MARCH_FOR_HOURS = textwrap.dedent("""
+    import sys, time, torch
+    from nimbus.kernels.march import EXTENSION
+    assert EXTENSION.available()
+    P, K = 10**5, 10**6  # 1e11 samples: hours of marching (K as large as a 64x48 view's memory check admits)
+    f, o = torch.zeros(8, 8, 8), torch.tensor([-2.0, 0, 0])
+    d, t0, t1 = torch.tensor([[1.0, 0, 0]]).repeat(P, 1), torch.zeros(P), torch.full((P,), 4.0)
+    lo, hi = torch.full((3,), -1.0), torch.full((3,), 1.0)
+    print("marching", flush=True)
+    try:
+        if sys.argv[1] == "forward":
+            torch.ops.nimbus_march.march_forward(f, o, d, t0, t1, lo, hi, K)
+        else:
+            torch.ops.nimbus_march.march_backward(f, o, d, t0, t1, lo, hi, K, torch.ones(P))
+        print("finished", flush=True)
+    except KeyboardInterrupt:
+        print("interrupted", flush=True)
+""")
+
+
+@pytest.mark.parametrize("direction", ["forward", "backward"])
+def test_ctrl_c_stops_a_march_that_would_run_for_hours(direction):
+    from nimbus.kernels.march import EXTENSION
+
+    if not EXTENSION.available(warn=False):
+        pytest.skip("no compiled march kernel here (no compiler)")  # built here first: the child only loads it
+    child = subprocess.Popen([sys.executable, "-c", MARCH_FOR_HOURS, direction], stdout=subprocess.PIPE, text=True,
+                             env={**os.environ, "OMP_NUM_THREADS": "1"})
+    try:
+        assert child.stdout.readline().strip() == "marching"
+        time.sleep(0.5)  # inside the op by now (it starts in microseconds); an earlier signal is caught as well
+        child.send_signal(signal.SIGINT)
+        out, _ = child.communicate(timeout=120)  # a guard against a hang, not a timing assertion (hours without)
+    finally:
+        child.kill()
+    assert out.strip() == "interrupted"
+
+
+# Size-like synthesis settings the memory estimate does not cover: at 2**31 each ended in a traceback (a box filter's
+# bad_alloc, a 16 GiB table or slice list) or ran for minutes (fog octaves).  Each has a bound where more stops
+# mattering (weather_synth/haze.py, rain.py, snow.py), refused before anything is read or written.
+@pytest.mark.parametrize("item, accepted", [
+    ("haze.box_size=2147483647", "an integer in 1..4096"),
+    ("haze.fog_table_samples=2147483647", "an integer in 1..4096"),
+    ("haze.fog_noise_octaves=2147483647", "an integer in 1..16"),
+    ("rain.slices=2147483647", "an integer in 1..64"),
+    ("snow.slices=2147483647", "an integer in 1..64"),
+])
+def test_a_huge_synthesis_size_is_one_error_line_before_anything_is_written(tmp_path, scene_dir, capsys, item,
+                                                                             accepted):
+    from weather_synth.cli import main
+
+    out = tmp_path / "bench"
+    code, err = _run(main, ["degrade", scene_dir, "--out", out, "--weather", "H,R,S", "--quiet", "--protocol",
+                            "physical", "--haze-mode", "heterogeneous", "--set", item], capsys)
+    assert code == 2 and "Traceback" not in err and err.strip().splitlines() == [err.strip()], err
+    assert err.startswith(f"error: --set {item}: must be {accepted}")
+    assert list(tmp_path.iterdir()) == []

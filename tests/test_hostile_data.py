@@ -316,7 +316,7 @@ def test_nan_sparse_point_in_a_colmap_model_is_refused(tmp_path):
     ({"cx": None, "w": 0}, "w must be a positive whole number"),
     ({"w": 16.5}, "w must be a positive whole number"),
     ({"h": True}, "field 'h' must be a number or null, got True"),
-    ({"camera_angle_x": 0.0, "fl_x": None}, "fl_x must be finite"),
+    ({"camera_angle_x": 0.0, "fl_x": None}, "camera_angle_x=0 radians"),
     ({"k1": float("nan")}, "field 'k1' must be a finite number"),
 ])
 def test_invalid_camera_values_in_transforms_json_name_the_file_and_frame(tmp_path, change, message):
@@ -657,3 +657,174 @@ def test_a_damaged_png_is_refused_naming_the_file(tmp_path):
         (tmp_path / name).write_bytes(data)
         with pytest.raises(NimbusError, match=rf"image .*{name} is (unreadable or corrupt|truncated)"):
             read_image(tmp_path / name)
+
+
+# --- 7. no silent garbage: camera values that load but mean nothing (issue 35, item 7) ----------------------
+# A field of view of 180 degrees or more, a focal length in the wrong unit and a quaternion that is no rotation were
+# read without a word: pycolmap normalises a zero quaternion into some rotation, and a near-zero focal length renders
+# a few pixels of the scene across the whole image.  Each is refused naming the file and the field.
+@pytest.mark.parametrize("angle", [np.pi, 3.0, -1.0], ids=["180deg", "172deg-read", "negative"])
+def test_a_transforms_field_of_view_of_180_degrees_or_more_is_refused(tmp_path, angle):
+    root = _transforms_scene(tmp_path, top={"camera_angle_x": angle})
+    meta = json.loads((root / "transforms.json").read_text())
+    meta.pop("fl_x"), meta.pop("fl_y")
+    (root / "transforms.json").write_text(json.dumps(meta))
+    if np.degrees(angle) < 175 and angle > 0:  # wide but a pinhole: read
+        assert load_scene(root).views[0].camera.fov_x == pytest.approx(angle)
+        return
+    with pytest.raises(NimbusError, match=r"transforms.json: frame 0 \(images/0.png\): camera_angle_x=.* not a "
+                                          r"pinhole field of view"):
+        load_scene(root)
+
+
+def test_a_transforms_focal_length_that_sees_180_degrees_is_refused(tmp_path):
+    root = _transforms_scene(tmp_path, frame0={"fl_y": 1e-6})
+    with pytest.raises(NimbusError, match=r"transforms.json: frame 0 \(images/0.png\): fy=1e-06 gives a vertical "
+                                          r"field of view of 180 degrees"):
+        load_scene(root)
+
+
+@pytest.mark.parametrize("focal", [1e-9, 0.05])
+def test_a_colmap_focal_length_that_sees_180_degrees_is_refused(tmp_path, focal):
+    sparse = _colmap_scene(tmp_path) / "sparse" / "0"
+    data = bytearray((sparse / "cameras.bin").read_bytes())
+    data[8 + 24:8 + 32] = struct.pack("<d", focal)  # fx of camera 1
+    (sparse / "cameras.bin").write_bytes(bytes(data))
+    with pytest.raises(NimbusError, match=rf"camera 1 in .*sparse/0 \(image '000.png'\): fx={focal:g} gives a "
+                                          r"horizontal field of view of 1\d\d(\.\d+)? degrees"):
+        load_scene(sparse.parent.parent)
+
+
+@pytest.mark.parametrize("where", ["frames.bin", "images.bin", "frames.txt", "images.txt"])
+@pytest.mark.parametrize("quaternion", [(0, 0, 0, 0), (2, 0, 0, 0)], ids=["zero", "scaled"])
+def test_a_colmap_quaternion_that_is_no_rotation_is_refused(tmp_path, where, quaternion):
+    text = where.endswith(".txt")
+    sparse = _colmap_scene(tmp_path, text=text) / "sparse" / "0"
+    f = sparse / where
+    if where == "images.bin":  # the legacy layout, where the pose is the image's
+        (sparse / "rigs.bin").unlink()
+        (sparse / "frames.bin").unlink()
+    if text:
+        lines = f.read_text().splitlines()
+        first = next(i for i, line in enumerate(lines) if line and not line.startswith("#"))
+        tokens = lines[first].split()
+        at = 1 if where == "images.txt" else 2
+        tokens[at:at + 4] = [str(v) for v in quaternion]
+        lines[first] = " ".join(tokens)
+        f.write_text("\n".join(lines) + "\n")
+        match = rf"{where} line {first + 1}: its rotation quaternion .* has norm {np.linalg.norm(quaternion):g}"
+    else:
+        data = bytearray(f.read_bytes())
+        at = 8 + (4 if where == "images.bin" else 8)
+        data[at:at + 32] = struct.pack("<4d", *quaternion)
+        f.write_bytes(bytes(data))
+        match = rf"{where} is corrupt .*(image|frame) 1: its rotation quaternion .* has norm"
+    with pytest.raises(NimbusError, match=match):
+        load_scene(sparse.parent.parent)
+
+
+def test_a_colmap_quaternion_rounded_to_a_few_digits_is_read(tmp_path):
+    sparse = _colmap_scene(tmp_path, text=True) / "sparse" / "0"
+    lines = (sparse / "images.txt").read_text().splitlines()
+    first = next(i for i, line in enumerate(lines) if line and not line.startswith("#"))
+    tokens = lines[first].split()
+    tokens[1:5] = [f"{float(v):.3f}" for v in tokens[1:5]]
+    lines[first] = " ".join(tokens)
+    (sparse / "images.txt").write_text("\n".join(lines) + "\n")
+    assert len(load_scene(sparse.parent.parent).views) == 3
+
+
+# --- 8. round 2: a duplicated PLY property, names too long for the file system, non-finite exports ----------
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian"])
+def test_a_ply_with_a_duplicated_property_is_refused(tmp_path, fmt):
+    """numpy refused the binary record type with a traceback; the ASCII reader silently took the last column."""
+    head = PLY_HEAD.format(fmt=fmt, element="element vertex 1\n").replace("property float z\n",
+                                                                          "property float z\nproperty float x\n")
+    body = "1 2 3 4\n" if fmt == "ascii" else struct.pack("<4f", 1, 2, 3, 4).decode("latin-1")
+    (tmp_path / "p.ply").write_bytes((head + body).encode("latin-1"))
+    with pytest.raises(NimbusError, match=r"p.ply: the vertex property 'x' is declared more than once"):
+        read_ply_points(tmp_path / "p.ply")
+
+
+@pytest.mark.parametrize("where", ["transforms", "colmap", "split list"])
+def test_a_name_longer_than_the_file_system_allows_is_refused(tmp_path, where):
+    long = "a" * 300 + ".png"
+    if where == "transforms":
+        root = _transforms_scene(tmp_path, frame0={"file_path": f"images/{long}"})
+        match = r"frame 0 .*file_path name .* has a part of 304 bytes; file systems take at most 255"
+    elif where == "colmap":
+        sparse = _colmap_scene(tmp_path, text=True) / "sparse" / "0"
+        text = (sparse / "images.txt").read_text()
+        (sparse / "images.txt").write_text(text.replace(" 000.png", f" {long}", 1))
+        root, match = sparse.parent.parent, r"image name in .*images.txt name .* has a part of 304 bytes"
+    else:
+        root = _colmap_scene(tmp_path)
+        (root / "test_list.txt").write_text(long + "\n")
+        match = r"test_list.txt.* has a part of 304 bytes"
+    with pytest.raises(NimbusError, match=match):
+        load_scene(root)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_a_rendered_image_with_non_finite_values_is_not_written(tmp_path, bad):
+    """to_uint8 turned NaN into black and inf into white without a word."""
+    img = np.full((4, 6, 3), 0.5, np.float32)
+    img[1, 2, 0] = bad
+    with pytest.raises(NimbusError, match=r"refusing to write image .*r.png: 1 of 72 values are NaN or inf "
+                                          r"\(the first at index \(1, 2, 0\)\)"):
+        write_image(tmp_path / "r.png", img)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_depth_map_with_nan_is_not_written_and_inf_is_sky(tmp_path):
+    from nimbus.data.images import write_depth
+
+    depth = np.ones((4, 6), np.float32)
+    depth[0, 0] = np.inf  # sky: kept
+    write_depth(tmp_path / "ok.npy", depth)
+    assert np.isinf(read_depth(tmp_path / "ok.npy")[0, 0])
+    for bad in (np.nan, -np.inf):
+        depth[3, 5] = bad
+        with pytest.raises(NimbusError, match=r"refusing to write depth map .*bad.npy: 1 of 24 values are NaN or "
+                                              r"-inf \(the first at index \(3, 5\)\)"):
+            write_depth(tmp_path / "bad.npy", depth)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ok.npy"]
+
+
+def test_a_write_under_a_name_too_long_is_one_error_and_leaves_nothing(tmp_path):
+    from nimbus.utils.fs import atomic_write_bytes
+
+    with pytest.raises(NimbusError, match=r"the file name 'xxx.* is too long for the file system of .* \(300 bytes "
+                                          r"in one name; most take 255\)"):
+        atomic_write_bytes(tmp_path / ("x" * 300), b"data")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_full_disk_met_outside_the_atomic_writers_is_one_error_line(tmp_path, capsys):
+    """A log line, a library's own file: run_cli turns ENOSPC into one line naming the folder (exit 2)."""
+    import errno
+
+    from nimbus.cli_util import run_cli
+
+    def main(argv):
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "run" / "train_log.jsonl"))
+
+    assert run_cli(main, []) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.splitlines() == [err] and err.startswith(f"error: no space left on the device of {tmp_path / 'run'}")
+
+    def bug(argv):
+        raise OSError(errno.EIO, "Input/output error")  # not the user's to fix: a traceback as before
+
+    with pytest.raises(OSError):
+        run_cli(bug, [])
+
+
+def test_a_json_output_with_nan_is_not_written_and_an_infinite_psnr_is(tmp_path):
+    from nimbus.utils.fs import atomic_write_json
+
+    with pytest.raises(NimbusError, match=r"refusing to write .*results.json: its field per_view.a.psnr is NaN"):
+        atomic_write_json(tmp_path / "results.json", {"psnr": 20.0, "per_view": {"a": {"psnr": float("nan")}}})
+    assert list(tmp_path.iterdir()) == []
+    atomic_write_json(tmp_path / "results.json", {"psnr": float("inf")})  # identical images
+    assert json.loads((tmp_path / "results.json").read_text())["psnr"] == float("inf")

@@ -347,3 +347,61 @@ def test_largest_seed_is_accepted(tmp_path, capsys):
                     "--quiet", "--seed", str(MAX_SEED))
     assert code == 0, err
     assert json.loads((tmp_path / "out" / "H" / "manifest.json").read_text())["seed"] == MAX_SEED
+
+
+# --- 6. issue 35, round 2: a full disk, a dangling --out, absurd weather amounts ---------------------------------
+def test_a_full_disk_in_a_later_setting_leaves_no_setting_behind(tmp_path, capsys, inputs, disk_full):
+    """The disk fills while the third setting is written: none of the settings this run wrote stays (one setting
+    of seven is not the dataset asked for), nor a temporary folder; one error line names the folder."""
+    failed = disk_full("/.R+S.tmp-")  # the third of H, R, S, H+R, ...: after two complete settings
+    out = tmp_path / "new" / "bench"
+    code, err = cli(capsys, "degrade", inputs["scene"], "--out", out, "--weather", "all", "--quiet")
+    assert failed, "the third setting was never written"
+    assert_one_error(code, err, "no space left on the device of", "bytes free")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_full_disk_with_overwrite_keeps_the_settings_it_did_not_write(tmp_path, capsys, inputs, disk_full):
+    out = tmp_path / "bench"
+    assert cli(capsys, "degrade", inputs["scene"], "--out", out, "--weather", "H,S", "--quiet")[0] == 0
+    before = snapshot(out / "S")
+    disk_full("/.R.tmp-")
+    code, err = cli(capsys, "degrade", inputs["scene"], "--out", out, "--weather", "H,R", "--quiet", "--overwrite")
+    assert_one_error(code, err, "no space left on the device of")
+    assert sorted(p.name for p in out.iterdir()) == ["H", "S", "index.json"]  # R, which this run began, is gone
+    assert snapshot(out / "S") == before
+
+
+@pytest.mark.parametrize("command", ["degrade", "demo"])
+def test_out_given_as_a_dangling_link_is_one_error_line(tmp_path, capsys, inputs, command):
+    link = tmp_path / "out"
+    link.symlink_to(tmp_path / "missing")
+    args = [inputs["scene"]] if command == "degrade" else ["--size", "tiny"]
+    code, err = cli(capsys, command, *args, "--out", link, "--weather", "H", "--quiet")
+    assert_one_error(code, err, "is a link to", "does not exist")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"] and link.is_symlink()
+
+
+@pytest.mark.parametrize("flag, value, words", [
+    ("--rain", "1e6", "--rain 1e6: the amount must be a number in [0, 10]"),
+    ("--snow", "1e4", "--snow 1e4: the amount must be a number in [0, 250]"),
+])
+def test_a_weather_amount_beyond_its_bound_is_one_error_line(tmp_path, capsys, inputs, flag, value, words):
+    code, err = cli(capsys, "degrade", inputs["scene"], "--out", tmp_path / "out", "--weather", "R,S", "--quiet",
+                    flag, value)
+    assert_one_error(code, err, words)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_degraded_image_with_nan_is_not_written(tmp_path, capsys, inputs, monkeypatch):
+    real = Synthesizer.degrade
+
+    def broken(self, view, setting, image=None):
+        res = real(self, view, setting, image)
+        res.image[0, 0, 0] = np.nan  # what a NaN depth or a broken medium would make
+        return res
+
+    monkeypatch.setattr(Synthesizer, "degrade", broken)
+    code, err = cli(capsys, "degrade", inputs["scene"], "--out", tmp_path / "out", "--weather", "H", "--quiet")
+    assert_one_error(code, err, "refusing to write the degraded view", "of setting H", "NaN")
+    assert list(tmp_path.iterdir()) == []

@@ -525,3 +525,87 @@ def test_corrupt_ply_header_is_a_clear_error(tmp_path, edit, message):
     (tmp_path / "bad.ply").write_bytes(edit(raw))
     with pytest.raises(NimbusError, match=message):
         read_gaussian_ply(tmp_path / "bad.ply")
+
+
+# --- issue 35, round 2: faults that ended in a traceback, a full disk, non-finite exports --------------------
+# Each ends in one error line with exit 2 and leaves nothing partial: a dangling --out link, a checkpoint tensor
+# of another shape (--resume and nimbus-view), a disk that fills up while a run writes, NaN in a PLY export.
+def test_out_given_as_a_dangling_link_is_one_error_line(tmp_path, capsys):
+    link = tmp_path / "out"
+    link.symlink_to(tmp_path / "missing" / "run")
+    code, err = cli(["builtin:garden:tiny", *FAST, "--out", link], capsys)
+    assert_one_error(code, err, "is a link to", "does not exist")
+    assert link.is_symlink() and not (tmp_path / "missing").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def _reshaped_checkpoint(run: Path, name: str, shape: tuple) -> None:
+    state = torch.load(run / CHECKPOINT, weights_only=True)
+    state["params"]["tensors"][name] = torch.zeros(shape)
+    torch.save(state, run / CHECKPOINT)
+
+
+@pytest.mark.parametrize("name, shape, needle", [
+    ("means", (5, 3), "'log_scales' has shape"),  # fewer Gaussians than the other tensors
+    ("sh_rest", None, "'sh_rest' has shape"),  # another SH degree's coefficients
+    ("quats", None, "'quats' has shape"),  # 3 numbers per rotation instead of 4
+])
+def test_resume_refuses_a_checkpoint_tensor_of_the_wrong_shape_and_keeps_the_run(run, capsys, name, shape, needle):
+    n = torch.load(run / CHECKPOINT, weights_only=True)["params"]["tensors"]["means"].shape[0]
+    shape = shape or {"sh_rest": (n, 3, 7), "quats": (n, 3)}[name]
+    _reshaped_checkpoint(run, name, shape)
+    before = snapshot(run)
+    code, err = cli(["--resume", run, "--quiet"], capsys)
+    assert_one_error(code, err, "does not fit this run", needle)
+    assert snapshot(run) == before  # the log is not cut back, nothing is written
+
+
+def test_viewer_refuses_a_checkpoint_tensor_of_the_wrong_shape(run, capsys):
+    from nimbus.cli.view import main as view_main
+
+    _reshaped_checkpoint(run, "means", (5, 3))
+    with pytest.raises(SystemExit) as info:
+        view_main([str(run), "--port", "0"])
+    assert_one_error(info.value.code, capsys.readouterr().err, "does not fit this run", "'log_scales' has shape")
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_a_ply_export_with_non_finite_values_is_refused_naming_the_property(tmp_path, bad):
+    n = 4
+    scales = np.zeros((n, 3))
+    scales[2, 1] = bad
+    with pytest.raises(NimbusError, match=r"point_cloud.ply: 1 of 4 Gaussians have NaN or infinite values "
+                                          r"\(in scale_1\)"):
+        write_gaussian_ply(tmp_path / "point_cloud.ply", np.zeros((n, 3)), np.zeros((n, 1, 3)), np.zeros(n), scales,
+                           np.tile([1.0, 0, 0, 0], (n, 1)))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_full_disk_at_the_first_checkpoint_leaves_no_run_folder(tmp_path, capsys, disk_full):
+    failed = disk_full(".checkpoint.pt.tmp-", after_bytes=100)
+    out = tmp_path / "new" / "run"
+    code, err = cli(["builtin:garden:tiny", *FAST, "--out", out], capsys)
+    assert failed, "the checkpoint was never written"
+    assert_one_error(code, err, f"no space left on the device of {out}", "checkpoint.pt needs", "bytes free")
+    assert list(tmp_path.iterdir()) == []  # no run folder, no temporary file, no parent made for it
+
+
+def test_a_full_disk_after_a_checkpoint_leaves_a_run_that_resumes(tmp_path, capsys):
+    from conftest import _fill_disk_for
+
+    out = tmp_path / "run"
+    with pytest.MonkeyPatch.context() as m:
+        real = Runner.finish
+
+        def finish(self):  # the disk fills up once training is done, as the renders are written
+            _fill_disk_for(m, ".png.tmp-")
+            return real(self)
+
+        m.setattr(Runner, "finish", finish)
+        code, err = cli(["builtin:garden:tiny", *FAST, "--out", out], capsys)
+    assert_one_error(code, err, "no space left on the device of", "renders")
+    assert (out / CHECKPOINT).is_file() and not (out / "results.json").exists()
+    assert not list(out.rglob(".*tmp-*"))  # no temporary file left behind
+    code, err = cli(["--resume", out, "--quiet"], capsys)  # space freed: the run finishes
+    assert code == 0, err
+    assert (out / "results.json").is_file()

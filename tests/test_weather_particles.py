@@ -10,10 +10,10 @@ from weather_synth.compose import ComposeConfig, compose, srgb_decode, srgb_enco
 from weather_synth.config import SynthConfig, protocol_config
 from weather_synth.haze import HazeConfig, HazeModel
 from weather_synth.particles import ParticleSlice, fall_direction, image_fall_angle, motion_kernel
-from weather_synth.rain import RainConfig, rain_preset, render_rain
+from weather_synth.rain import MAX_RAIN_AMOUNT, RainConfig, rain_preset, render_rain
 from weather_synth.seeds import rng_for
 from weather_synth.settings import parse_setting
-from weather_synth.snow import SnowConfig, render_snow, snow_preset
+from weather_synth.snow import MAX_SNOW_AMOUNT, SnowConfig, render_snow, snow_preset
 from weather_synth.synth import Synthesizer
 
 W, H = 96, 72
@@ -197,7 +197,8 @@ def test_huge_intensities_saturate_without_nan(fill):
     sc = scene(1)
     sc = sc.with_views([View("000.png", sc.views[0].camera, image=np.full((H, W, 3), fill, np.float32),
                              depth=sc.views[0].depth)])
-    cfg = SynthConfig(rain=rain_preset("heavy", amount=1e6), snow=snow_preset("heavy", amount=1e4))
+    # The largest accepted amounts (issue 35 bounds them: beyond, nothing changes but the clipping).
+    cfg = SynthConfig(rain=rain_preset("heavy", amount=MAX_RAIN_AMOUNT), snow=snow_preset("heavy", amount=MAX_SNOW_AMOUNT))
     for setting in ("R", "S", "H+R+S"):
         out = Synthesizer(sc, cfg).degrade(sc.views[0], parse_setting(setting)).image
         assert np.isfinite(out).all() and out.min() >= 0 and out.max() <= 1

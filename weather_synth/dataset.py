@@ -49,10 +49,12 @@ The manifest's ``input.point_colours`` records the rule and the counts.
 So 3DGS, gsplat or nerfstudio train on ``OUT/H+R`` directly and a benchmark
 scores renders against ``clean/``.  Views are processed one at a time (memory
 does not grow with the number of views); every setting folder is written
-atomically (a temporary folder renamed into place when complete), so an
-interrupted run leaves only complete settings, and a run that fails before
-its first setting is complete leaves no ``OUT`` (nor parent folder) that it
-made.  A temporary folder left by a killed run (``OUT/.SETTING.tmp-*``, whose
+atomically (a temporary folder renamed into place when complete), and a run
+that fails or is interrupted (a full disk, a corrupt image, Ctrl-C) removes
+every setting it wrote, and the ``OUT`` (and parent folders) it made: one
+setting of seven is not the dataset asked for.  Only a setting that an
+``--overwrite`` run had already replaced stays (complete; its old version is
+gone).  A kill -9 leaves complete settings and a temporary folder.  A temporary folder left by a killed run (``OUT/.SETTING.tmp-*``, whose
 owner process is gone) is removed by the next run.  The same input, config
 and seed give the same bytes.
 
@@ -80,7 +82,7 @@ import numpy as np
 
 from nimbus import __version__
 from nimbus.data.camera import Camera
-from nimbus.data.images import encode_png, to_uint8
+from nimbus.data.images import encode_png, refuse_nonfinite, to_uint8
 from nimbus.data.io import SCENE_FORMATS, write_scene_into
 from nimbus.data.scene import Scene, View
 from nimbus.errors import NimbusError
@@ -270,8 +272,9 @@ def degrade_scene(scene: Scene, out: str | os.PathLike, settings: Sequence[Weath
     out : path
         Output folder; refused when non-empty unless ``overwrite`` (then each
         written setting folder replaces its old version atomically), and when
-        it is, contains or lies inside one of the scene's inputs.  A folder this
-        call creates is removed again when it fails before a setting is complete.
+        it is, contains or lies inside one of the scene's inputs.  When the call
+        fails, the settings it wrote and the folders it made are removed again
+        (module docstring).
     settings : sequence of WeatherSetting
     config : SynthConfig
     overwrite : bool
@@ -291,11 +294,15 @@ def degrade_scene(scene: Scene, out: str | os.PathLike, settings: Sequence[Weath
     out = check_dataset_out(out, overwrite, scene_inputs(scene))
     check_view_names(scene, out)
     created = [p for p in (out, *out.parents) if not p.exists()]  # deepest first
+    existed = {s.name for s in settings if (out / s.name).exists()}
     try:
         return _degrade_into(scene, out, settings, config, progress, source)
     except BaseException:
-        # Complete settings stay (a rerun with --overwrite replaces them); folders this call made and
-        # left empty go, so a failed run leaves nothing behind.
+        # A failed run (a full disk, a corrupt image in the fifth setting, Ctrl-C) leaves none of the settings it
+        # wrote: one setting of seven is not the dataset asked for.  A setting an --overwrite already replaced
+        # is complete and stays (its old version is gone); folders this call made and left empty go too.
+        for name in {s.name for s in settings} - existed:
+            shutil.rmtree(out / name, ignore_errors=True)
         for p in created:
             with contextlib.suppress(OSError):
                 p.rmdir()
@@ -332,6 +339,7 @@ def _degrade_into(scene: Scene, out: Path, settings: Sequence[WeatherSetting], c
                         input_sums[view.name] = _input_sha256(view, J)
                     res = synth.degrade(view, setting, J)
                     out_name = png_name(view.name)
+                    refuse_nonfinite(res.image, f"the degraded view {view.name} of setting {setting.name}")
                     degraded = to_uint8(res.image)
                     image_bytes = encode_png(degraded)
                     atomic_write_bytes(confined_path(tmp / DEGRADED_STAGING_DIR, out_name, "view"), image_bytes)

@@ -42,7 +42,7 @@ from typing import Callable, ClassVar
 import cv2
 import numpy as np
 
-from nimbus.config_validation import Limit, at_least, fraction, one_of, positive
+from nimbus.config_validation import Limit, at_least, between, fraction, one_of, positive
 from nimbus.data.camera import Camera
 from nimbus.errors import NimbusError
 from nimbus.utils.jsonable import jsonable
@@ -56,6 +56,15 @@ SAMPLING = ("view", "scene")
 VISIBILITY_CONTRAST = 3.912
 # Smallest ray distance used when inverting depth (a surface at the camera is the nearest possible).
 _MIN_DISTANCE = 1e-12
+
+
+# Upper bounds of the size-like haze settings (issue 35: 2**31 ended in a failed allocation or ran without end).
+#: The onerestore box filter, in pixels: OneRestore's is 22, and the filter pads the depth map by half its size.
+MAX_BOX_SIZE = 4096
+#: Fractal octaves of the height fog's noise: 16 reach features 1/65536 of fog_noise_scale, below a pixel.
+MAX_FOG_OCTAVES = 16
+#: Tabulated distances per ray of the height fog (32 by default; the table holds rays x samples values).
+MAX_FOG_TABLE_SAMPLES = 4096
 
 
 @dataclass(frozen=True)
@@ -138,11 +147,12 @@ class HazeConfig:
         "beta": at_least(0, finite=False, note="inf: opaque"), "beta_range": at_least(0, ordered=True),
         "visibility": positive(note="scene units"), "visibility_scale": positive(),
         "airlight": fraction(scalar=True, note="R, G, B"), "airlight_range": fraction(ordered=True),
-        "depth_cap": at_least(0), "box_size": at_least(1, note="pixels; 1: no filter"),
+        "depth_cap": at_least(0), "box_size": between(1, MAX_BOX_SIZE, note="pixels; 1: no filter"),
         "max_distance": positive(note="scene units"),
         "fog_height_scale": positive(), "fog_noise_amplitude": fraction(), "fog_noise_scale": positive(),
-        "fog_noise_octaves": at_least(1), "fog_far": positive(), "fog_grid": at_least(1),
-        "fog_table_samples": at_least(1),
+        "fog_noise_octaves": between(1, MAX_FOG_OCTAVES, note="each halves the feature size"),
+        "fog_far": positive(), "fog_grid": at_least(1, note="rays across the width; capped by it"),
+        "fog_table_samples": between(1, MAX_FOG_TABLE_SAMPLES, note="per tabulated ray"),
     }
 
     def __post_init__(self) -> None:

@@ -40,6 +40,19 @@ from weather_synth.particles import (
 )
 
 RAIN_PRESETS = ("light", "medium", "heavy")
+#: Depth slices per streak layer at most: each is a full-image layer (memory grows with it), and 64 depths are finer
+#: than the eye tells apart.
+MAX_SLICES = 64
+# Bounds beyond which rain stops being rain (issue 35: absurd amounts gave silent garbage, or allocated without end).
+#: amount multiplies a streak's peak brightness: at 10 the faintest default layer (0.10-0.20) already peaks at white,
+#: so more only clips every streak to white.
+MAX_RAIN_AMOUNT = 10.0
+#: density_scale multiplies streaks per pixel: at 1000 the dense layer seeds 3 streaks on every pixel, each 14-26
+#: pixels long, so the image is covered many times over (the seeds and their memory grow with it, without end).
+MAX_RAIN_DENSITY_SCALE = 1000.0
+#: length_scale multiplies streak lengths: at 5 the longest default streak (90 reference pixels) is 450 of the
+#: reference width's 512; a streak longer than the image is no streak (and its kernel grows with the square).
+MAX_RAIN_LENGTH_SCALE = 5.0
 # Cross-section sigma (pixels) of an anti-aliased one-pixel line: thinner streaks are dimmed instead.
 LINE_SIGMA = 0.4
 
@@ -108,8 +121,11 @@ class RainConfig:
 
     #: The accepted values of each field (see :mod:`nimbus.config_validation`).
     LIMITS: ClassVar[dict[str, Limit]] = {
-        "amount": at_least(0), "density_scale": at_least(0), "length_scale": at_least(0),
-        "angle_jitter": between(0, 90, note="degrees"), "slices": at_least(1),
+        "amount": between(0, MAX_RAIN_AMOUNT, note="10: every streak peaks at white"),
+        "density_scale": between(0, MAX_RAIN_DENSITY_SCALE, note="1000: 3 streaks on every pixel"),
+        "length_scale": between(0, MAX_RAIN_LENGTH_SCALE, note="5: the longest streak nearly spans the image"),
+        "angle_jitter": between(0, 90, note="degrees"),
+        "slices": between(1, MAX_SLICES, note="full-image layers per streak layer"),
     }
 
     def __post_init__(self) -> None:

@@ -23,7 +23,7 @@ from typing import ClassVar
 import cv2
 import numpy as np
 
-from nimbus.config_validation import Limit, at_least, fraction
+from nimbus.config_validation import Limit, at_least, between, fraction
 from nimbus.data.camera import Camera
 from nimbus.errors import NimbusError
 from weather_synth.particles import (
@@ -36,6 +36,16 @@ from weather_synth.particles import (
 )
 
 SNOW_PRESETS = ("light", "medium", "heavy")
+#: Depth slices per class at most: each is a full-image layer (memory grows with it), and 64 depths are finer
+#: than the eye tells apart.
+MAX_SLICES = 64
+# Bounds beyond which snow stops being snowfall (issue 35: absurd amounts gave silent garbage).
+#: amount multiplies flakes per pixel: at 250 the small class alone drops one flake on every reference pixel, and
+#: the image is a white veil; more changes nothing.
+MAX_SNOW_AMOUNT = 250.0
+#: size_scale multiplies flake radii, blur and streaks: at 5 the largest flakes are 25 reference pixels across
+#: their radius and streak 70; beyond, a flake is a blot over a tenth of the image (and its canvas padding grows).
+MAX_SNOW_SIZE_SCALE = 5.0
 # Flake centres and radii are drawn with 1/16-pixel precision (cv2 drawing shift).
 _SHIFT = 4
 # Smallest flake radius drawn (pixels); smaller flakes are drawn this size with proportionally less alpha.
@@ -108,7 +118,9 @@ class SnowConfig:
 
     #: The accepted values of each field (see :mod:`nimbus.config_validation`).
     LIMITS: ClassVar[dict[str, Limit]] = {
-        "amount": at_least(0), "size_scale": at_least(0), "color": fraction(), "slices": at_least(1),
+        "amount": between(0, MAX_SNOW_AMOUNT, note="250: a flake on every pixel"),
+        "size_scale": between(0, MAX_SNOW_SIZE_SCALE, note="5: flakes 25 pixels in radius"), "color": fraction(),
+        "slices": between(1, MAX_SLICES, note="full-image layers per class"),
     }
 
     def __post_init__(self) -> None:

@@ -28,6 +28,12 @@ from nimbus.errors import NimbusError
 
 # How far R @ R.T may be from the identity (entry-wise): rounding in files written with ~7 digits.
 ROTATION_TOLERANCE = 1e-5
+#: The widest field of view (degrees, horizontal or vertical) a camera read from a scene file may have.  A pinhole
+#: image of 180 degrees or more does not exist (the focal length would be 0 or negative), and one this close to it is
+#: a focal length typed in the wrong unit: at 175 degrees the focal length is 1/46 of the image width, and the
+#: image's edge is stretched radially about 500 times more than its centre (1 / cos^2 of 87.5 degrees).  Undistorted
+#: wide-angle captures stay well below (a 120-degree action camera: f = 0.29 x width).
+MAX_FIELD_OF_VIEW_DEG = 175.0
 
 
 def finite_value(value: object, name: str) -> float:
@@ -222,6 +228,17 @@ class Camera:
     @classmethod
     def from_dict(cls, d: dict) -> "Camera":
         return cls(d["width"], d["height"], d["fx"], d["fy"], d["cx"], d["cy"], np.array(d["R"]), np.array(d["t"]))
+
+
+def check_field_of_view(camera: Camera) -> None:
+    """Refuse a camera read from a file whose field of view reaches :data:`MAX_FIELD_OF_VIEW_DEG` (NimbusError naming
+    the focal length field; the reader adds the file)."""
+    for axis, size, focal, fov in (("horizontal", camera.width, "fx", camera.fov_x),
+                                   ("vertical", camera.height, "fy", camera.fov_y)):
+        if np.degrees(fov) >= MAX_FIELD_OF_VIEW_DEG:
+            raise NimbusError(f"{focal}={getattr(camera, focal):.6g} gives a {axis} field of view of "
+                              f"{np.degrees(fov):.4g} degrees for an image {size} pixels wide; a pinhole camera "
+                              f"sees less than {MAX_FIELD_OF_VIEW_DEG:g} (is the focal length in pixels?)")
 
 
 def rotation_from_quaternion_wxyz(q: np.ndarray) -> np.ndarray:

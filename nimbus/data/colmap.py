@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from nimbus.data.camera import Camera
+from nimbus.data.camera import Camera, check_field_of_view
 from nimbus.data.scene_files import (
     attach_aux_files,
     check_image_sizes,
@@ -104,6 +104,8 @@ def read_reconstruction(sparse_dir: str | os.PathLike) -> pycolmap.Reconstructio
     binary = model_suffix(sparse_dir) == ".bin"
     if binary:
         check_binary_model(sparse_dir)
+    else:
+        check_text_quaternions(sparse_dir)
     try:
         return pycolmap.Reconstruction(sparse_dir)
     except Exception as e:  # pycolmap raises assorted C++ exceptions (ValueError, RuntimeError, IndexError)
@@ -183,6 +185,30 @@ class _RecordReader:
         self.pos = end + 1
 
 
+#: How far a pose quaternion's norm may be from 1: COLMAP writes unit quaternions, and a file rounded to 3 digits
+#: stays within this.  A zero (or wildly scaled) quaternion is no rotation; pycolmap would normalise it into some
+#: rotation and the view would be trained at a pose nobody measured.
+QUATERNION_NORM_TOLERANCE = 0.01
+
+
+def quaternion_problem(q) -> str | None:
+    """What is wrong with a pose quaternion (QW, QX, QY, QZ) read from a model, or None.  A non-finite one is left to
+    the camera check (:class:`~nimbus.data.camera.Camera` refuses a NaN pose naming the image)."""
+    q = np.asarray(q, dtype=np.float64)
+    norm = float(np.linalg.norm(q))
+    if np.all(np.isfinite(q)) and not abs(norm - 1) <= QUATERNION_NORM_TOLERANCE:
+        return (f"its rotation quaternion (QW QX QY QZ) = {' '.join(f'{v:g}' for v in q)} has norm {norm:.4g}, "
+                f"not 1 (within {QUATERNION_NORM_TOLERANCE:g}): it is no rotation")
+    return None
+
+
+def _check_quaternion(r: _RecordReader, offset: int, what: str) -> None:
+    if r.left() >= offset + 32:
+        problem = quaternion_problem(struct.unpack_from("<4d", r.buf, r.pos + offset))
+        if problem:
+            raise _Corrupt(f"{what}: {problem}")
+
+
 def _walk_cameras(r: _RecordReader) -> None:
     num_params = camera_model_num_params()
     for i in range(r.count(_U64, _CAMERA_BYTES, "cameras")):
@@ -195,6 +221,7 @@ def _walk_cameras(r: _RecordReader) -> None:
 
 def _walk_images(r: _RecordReader) -> None:
     for i in range(r.count(_U64, _IMAGE_BYTES + 1 + 8, "images")):
+        _check_quaternion(r, 4, f"image {i + 1}")  # after image_id
         r.skip(_IMAGE_BYTES, f"image {i + 1}")
         r.name(f"the name of image {i + 1}")
         n = r.count(_U64, _POINT2D_BYTES, f"2D points of image {i + 1}")
@@ -237,6 +264,7 @@ def _walk_rigs(r: _RecordReader) -> None:
 
 def _walk_frames(r: _RecordReader) -> None:
     for i in range(r.count(_U64, _FRAME_BYTES, "frames")):
+        _check_quaternion(r, 8, f"frame {i + 1}")  # after frame_id, rig_id
         r.skip(_FRAME_BYTES - 4, f"frame {i + 1}")
         n = r.count(_U32, _DATA_ID_BYTES, f"data ids of frame {i + 1}")
         r.pos += n * _DATA_ID_BYTES
@@ -318,6 +346,36 @@ def _text_line_problem(kind: str, tokens: list[str]) -> str | None:
     return None
 
 
+def check_text_quaternions(sparse_dir: str | os.PathLike) -> None:
+    """Refuse a text model whose ``images.txt`` or ``frames.txt`` holds a pose quaternion that is no rotation
+    (:func:`quaternion_problem`), naming the file and line; pycolmap would normalise it silently."""
+    sparse_dir = Path(sparse_dir)
+    for kind, first in (("images", 1), ("frames", 2)):  # QW is the 2nd token of an image line, 3rd of a frame's
+        path = sparse_dir / f"{kind}.txt"
+        try:
+            lines = path.read_text(encoding="utf-8").splitlines()
+        except (OSError, UnicodeDecodeError):
+            continue  # pycolmap reads (or refuses) it next
+        expect_points = False
+        for number, line in enumerate(lines, 1):
+            stripped = line.strip()
+            if expect_points:  # an image's 2D points: the line after its pose line, empty or not
+                expect_points = False
+                continue
+            if not stripped or stripped.startswith("#"):
+                continue
+            tokens = stripped.split()
+            try:
+                q = [float(t) for t in tokens[first:first + 4]]
+            except ValueError:
+                q = []
+            problem = quaternion_problem(q) if len(q) == 4 else None
+            if problem:
+                raise NimbusError(f"COLMAP model file {path} line {number}: {problem}; fix the pose or re-export "
+                                  "the model from COLMAP")
+            expect_points = kind == "images"
+
+
 def locate_text_model_error(sparse_dir: str | os.PathLike) -> str | None:
     """``"FILE line N: problem ('line')"`` for the first malformed line of a text model, or None.
 
@@ -392,6 +450,7 @@ def camera_from_colmap(cam: pycolmap.Camera, cam_from_world: np.ndarray, sparse_
     try:
         camera = Camera(cam.width, cam.height, cam.focal_length_x, cam.focal_length_y,
                         cam.principal_point_x, cam.principal_point_y, m[:3, :3], m[:3, 3])
+        check_field_of_view(camera)
     except NimbusError as e:
         image = f" (image {image_name!r})" if image_name is not None else ""
         raise NimbusError(f"camera {cam.camera_id} in {sparse_dir}{image}: {e}; fix the model (or re-export it "

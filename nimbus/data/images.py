@@ -265,8 +265,24 @@ def encode_png(img: np.ndarray) -> bytes:
     return buf.tobytes()
 
 
+def refuse_nonfinite(values: np.ndarray, what: str, allow_inf: bool = False) -> None:
+    """NimbusError before ``what`` is written when ``values`` hold NaN (or +-inf, unless ``allow_inf``: a depth
+    map's ``+inf`` is sky).  :func:`to_uint8` would turn NaN into black and inf into white without a word."""
+    values = np.asarray(values)
+    if not np.issubdtype(values.dtype, np.floating):
+        return
+    bad = np.isnan(values) | (np.isneginf(values) if allow_inf else np.isinf(values))
+    if bad.any():
+        first = tuple(int(i) for i in np.argwhere(bad)[0])
+        kinds = "NaN" + ("" if allow_inf else " or inf") + (" or -inf" if allow_inf else "")
+        raise NimbusError(f"refusing to write {what}: {int(bad.sum())} of {values.size} values are {kinds} "
+                          f"(the first at index {first}); the model or input that made it is broken. "
+                          "Nothing was written")
+
+
 def write_image(path: str | os.PathLike, img: np.ndarray) -> Path:
-    """Write a float RGB image in [0, 1] (or uint8) as an 8-bit PNG, atomically."""
+    """Write a float RGB image in [0, 1] (or uint8) as an 8-bit PNG, atomically; NaN or inf is refused."""
+    refuse_nonfinite(img, f"image {path}")
     return atomic_write_bytes(path, encode_png(img))
 
 
@@ -338,8 +354,10 @@ def _no_depth_as_inf(d: np.ndarray, path: Path) -> np.ndarray:
 
 
 def write_depth(path: str | os.PathLike, depth: np.ndarray) -> Path:
-    """Write a float32 z-depth map as ``.npy``, atomically."""
+    """Write a float32 z-depth map as ``.npy``, atomically (``+inf`` is sky; NaN and ``-inf`` are refused)."""
     import io
+
+    refuse_nonfinite(depth, f"depth map {path}", allow_inf=True)
 
     buf = io.BytesIO()
     np.save(buf, np.asarray(depth, dtype=np.float32), allow_pickle=False)

@@ -21,7 +21,7 @@ import numpy as np
 from nimbus.data.camera import Camera
 from nimbus.data.images import read_depth, read_image, read_mask
 from nimbus.errors import NimbusError
-from nimbus.utils.fs import confined_path
+from nimbus.utils.fs import check_name_length, confined_path
 
 
 @dataclass(frozen=True, eq=False)
@@ -257,6 +257,7 @@ def scene_file(root: str | os.PathLike, name: object, what: str, folder: str | o
     if pure.is_absolute() or ".." in pure.parts or Path(name).is_absolute():
         raise NimbusError(f"{what}: {name!r} points outside the scene folder {root}; names must be relative paths "
                           "inside the scene (no absolute paths, no '..'); fix the name or move the file into the scene")
+    check_name_length(name, what)
     path = Path(root) / folder / name
     try:
         confined_path(root, path.relative_to(root), what)

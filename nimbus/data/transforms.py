@@ -63,7 +63,7 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from nimbus.data.camera import Camera, finite_value, image_size_value
+from nimbus.data.camera import MAX_FIELD_OF_VIEW_DEG, Camera, check_field_of_view, finite_value, image_size_value
 from nimbus.data.images import IMAGE_EXTENSIONS
 from nimbus.data.scene_files import (
     attach_aux_files,
@@ -200,14 +200,24 @@ def _intrinsics(meta: dict, frame: dict, full_image: Path,
         if fx is None:
             if get("camera_angle_x") is None:
                 raise NimbusError(f"{where}: no focal length (fl_x or camera_angle_x); add it to the file")
-            fx = 0.5 * w / np.tan(0.5 * finite_value(get("camera_angle_x"), "camera_angle_x"))
+            fx = 0.5 * w / np.tan(0.5 * _angle(get("camera_angle_x"), "camera_angle_x"))
         if fy is None:
-            fy = (0.5 * h / np.tan(0.5 * finite_value(get("camera_angle_y"), "camera_angle_y"))
+            fy = (0.5 * h / np.tan(0.5 * _angle(get("camera_angle_y"), "camera_angle_y"))
                   if get("camera_angle_y") is not None else fx)
     cx = get("cx") if get("cx") is not None else w / 2
     cy = get("cy") if get("cy") is not None else h / 2
     return (w, h, finite_value(fx, "fl_x"), finite_value(fy, "fl_y"), finite_value(cx, "cx"),
             finite_value(cy, "cy"), lens)
+
+
+def _angle(value: object, name: str) -> float:
+    """A field of view in radians from the file, refused at 0 or below and at 180 degrees (pi) or more."""
+    v = finite_value(value, name)
+    if not 0 < v < np.radians(MAX_FIELD_OF_VIEW_DEG):
+        raise NimbusError(f"{name}={v:g} radians ({np.degrees(v):.4g} degrees) is not a pinhole field of view: it "
+                          f"must be above 0 and below {MAX_FIELD_OF_VIEW_DEG:g} degrees "
+                          f"({np.radians(MAX_FIELD_OF_VIEW_DEG):.4f} radians)")
+    return v
 
 
 def _mask_file(root: Path, name: object, downscale: int, what: str) -> Path:
@@ -305,6 +315,7 @@ def read_transforms(path: str | os.PathLike, downscale: int = 1, cache_dir: str 
                 if c2w.shape not in ((4, 4), (3, 4)):
                     raise NimbusError(f"transform_matrix must be 4x4 or 3x4, got shape {c2w.shape}")
                 cam = Camera.from_K(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), w, h, opengl_c2w_to_w2c(c2w))
+                check_field_of_view(cam)
             except NimbusError as e:
                 raise NimbusError(e.args[0] if str(e).startswith(where) else f"{where}: {e}") from None
             except (TypeError, ValueError) as e:
@@ -442,6 +453,10 @@ def read_ply_points(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     if count is None:
         raise NimbusError(f"{path}: the PLY header declares no vertices ('element vertex COUNT'); re-export the points")
     names = [p[0] for p in props]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:  # which column is "x" would be a guess (numpy refuses the record type; the ASCII path took the last)
+        raise NimbusError(f"{path}: the vertex property {', '.join(map(repr, twice[:4]))} is declared more than once; "
+                          "each property names one column: re-export the points")
     if not {"x", "y", "z"} <= set(names):
         raise NimbusError(f"{path}: vertices have no x, y, z")
     if fmt == "ascii":

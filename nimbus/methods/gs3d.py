@@ -232,6 +232,10 @@ class GaussianSplatting:
         self.iteration = int(state["iteration"])
         self.params.load_state_dict(state["params"])
         d = state["density"]
+        for key in ("grad_accum", "denom", "max_radii"):
+            if tuple(d[key].shape[:1]) != (len(self.params),):
+                raise ValueError(f"density statistic {key!r} has shape {tuple(d[key].shape)}, for "
+                                 f"{len(self.params)} Gaussians")
         self.strategy_state = {"grad_accum": d["grad_accum"], "denom": d["denom"], "max_radii": d["max_radii"]}
         # The generators live on the CPU whatever map_location moved the tensors to.
         self.gen.set_state(state["generator"].cpu())

@@ -85,8 +85,24 @@ class GaussianParams:
                 "optimizer": self.optimizer.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
+        """Restore tensors and Adam moments; ValueError naming the tensor when a shape does not fit (one Gaussian
+        count for all, this run's trailing sizes, moments shaped as their tensor): a checkpoint edited or written
+        for other settings would otherwise load and fail later, deep in a render."""
         names = [g["name"] for g in self.optimizer.param_groups]
         lrs = {g["name"]: g["lr"] for g in self.optimizer.param_groups}
         eps = self.optimizer.param_groups[0]["eps"]
-        self.__init__({k: state["tensors"][k] for k in names}, lrs, eps)
+        tensors = {k: state["tensors"][k] for k in names}
+        n = tensors["means"].shape[0] if tensors["means"].dim() else None
+        for k, t in tensors.items():
+            want = (n, *self.tensors[k].shape[1:])
+            if not isinstance(t, Tensor) or tuple(t.shape) != want or not t.is_floating_point():
+                got = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
+                raise ValueError(f"tensor {k!r} has shape {got}, this run needs {want} ({n} Gaussians from 'means')")
+        self.__init__(tensors, lrs, eps)
         self.optimizer.load_state_dict(state["optimizer"])
+        for group in self.optimizer.param_groups:
+            p = group["params"][0]
+            for key, moment in self.optimizer.state.get(p, {}).items():
+                if key in ("exp_avg", "exp_avg_sq") and tuple(moment.shape) != tuple(p.shape):
+                    raise ValueError(f"the Adam {key} of {group['name']!r} has shape {tuple(moment.shape)}, its "
+                                     f"tensor {tuple(p.shape)}")

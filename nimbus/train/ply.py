@@ -42,6 +42,12 @@ def write_gaussian_ply(path: str | os.PathLike, means: np.ndarray, sh: np.ndarra
     data = np.concatenate([np.asarray(c, dtype=np.float32).reshape(n, -1) for c in cols], axis=1)
     names = ply_property_names(k)
     assert data.shape[1] == len(names)
+    bad = ~np.isfinite(data)
+    if bad.any():
+        cols = sorted({names[j] for j in np.nonzero(bad.any(axis=0))[0]}, key=names.index)
+        raise NimbusError(f"refusing to write {path}: {int(bad.any(axis=1).sum())} of {n} Gaussians have NaN or "
+                          f"infinite values (in {', '.join(cols[:6])}{', ...' if len(cols) > 6 else ''}), which "
+                          "splat viewers render as garbage or crash on. Nothing was written")
     header = "ply\nformat binary_little_endian 1.0\n" + f"element vertex {n}\n"
     header += "".join(f"property float {name}\n" for name in names) + "end_header\n"
     return atomic_write_bytes(path, header.encode("ascii") + data.astype("<f4").tobytes())

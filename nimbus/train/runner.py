@@ -54,7 +54,7 @@ from nimbus.train.ply import write_gaussian_ply
 from nimbus.train.run_folder import (config_from_record, config_record, load_scene_arg, read_run_config,
                                      scene_input_folder)
 from nimbus.train.views import view_mask
-from nimbus.utils.fs import atomic_write_json, atomic_write_text, refuse_overlap
+from nimbus.utils.fs import atomic_write_json, atomic_write_text, refuse_overlap, write_problem
 from nimbus.utils.memory import peak_rss_mb
 from nimbus.versions import software_versions
 
@@ -207,8 +207,15 @@ class Runner:
     # --- log -----------------------------------------------------------------------------
     def log(self, record: dict) -> None:
         record = {"iteration": self.iteration, **record}
-        with open(self.out / LOG, "a") as f:
-            f.write(json.dumps(record) + "\n")
+        line = json.dumps(record) + "\n"
+        try:
+            with open(self.out / LOG, "a") as f:
+                f.write(line)
+        except OSError as e:  # a line cut short by a full disk is dropped on --resume (_truncate_log)
+            problem = write_problem(e, self.out / LOG, len(line.encode()))
+            if problem is None:
+                raise
+            raise problem from None
         if self.on_log is not None and "psnr" in record:
             self.on_log(record)
 

@@ -9,9 +9,11 @@ replaced unless they asked for it (``overwrite=True``).
 from __future__ import annotations
 
 import contextlib
+import errno
 import glob
 import hashlib
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -22,20 +24,62 @@ from typing import Any, Iterator
 from nimbus.errors import NimbusError
 
 
+#: errno values of a full disk (or a spent quota): the user can fix them, so they end in one error line.
+DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
+
+
+def write_problem(e: OSError, path: str | os.PathLike | None, need: int | None = None) -> NimbusError | None:
+    """The one-line :class:`NimbusError` for an ``OSError`` the user can fix while writing ``path`` (a full disk or
+    quota, naming the folder, the bytes needed where known and the bytes free; a name longer than the file system
+    takes), or None for any other error (left to raise as it is)."""
+    path = Path(path) if path is not None else None
+    if e.errno in DISK_FULL and path is None:
+        return NimbusError("no space left on a device being written to; free some space and run the command again")
+    if e.errno in DISK_FULL:
+        folder = path.parent
+        try:
+            free = f", {shutil.disk_usage(folder).free:,} bytes free"
+        except OSError:
+            free = ""
+        needed = f" ({path.name} needs {need:,} bytes{free})" if need is not None else (f" ({free[2:]})" if free
+                                                                                      else "")
+        return NimbusError(f"no space left on the device of {folder}{needed}; free some space or choose another "
+                           "output folder (the file was not written; nothing partial was kept)")
+    if e.errno == errno.ENAMETOOLONG:
+        name = path if path is not None else Path(str(e.filename))
+        longest = max((len(part.encode("utf-8", "surrogateescape")) for part in name.parts), default=0)
+        return NimbusError(f"the file name {shown(name.name)} is too long for the file system of {name.parent} "
+                           f"({longest} bytes in one name; most take {NAME_MAX}): rename the input it comes from")
+    return None
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` through a temporary file and ``os.replace``."""
+    """Write ``data`` to ``path`` through a temporary file and ``os.replace``.
+
+    A full disk (:data:`DISK_FULL`) or a name too long for the file system raises one-line :class:`NimbusError`
+    (:func:`write_problem`) and leaves nothing: neither the temporary file nor a changed ``path``.
+    """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name[:200]}.tmp-", dir=path.parent)
+    except OSError as e:
+        problem = write_problem(e, path, len(data))
+        if problem is None:
+            raise
+        raise problem from None
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
         os.chmod(tmp, 0o644)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
-        raise
+        problem = write_problem(e, path, len(data)) if isinstance(e, OSError) else None
+        if problem is None:
+            raise
+        raise problem from None
     return path
 
 
@@ -43,11 +87,46 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     return atomic_write_bytes(path, text.encode("utf-8"))
 
 
+def nonfinite_field(obj: Any, where: str = "", allow_inf: bool = False) -> str | None:
+    """The key path (``psnr``, ``per_view[3].ssim``) of the first NaN (or, unless ``allow_inf``, infinite) float in
+    a JSON-ready ``obj``, or None.  A NaN score sorts and averages as garbage, and strict JSON has neither."""
+    if isinstance(obj, float):
+        return None if math.isfinite(obj) or (allow_inf and not math.isnan(obj)) else (where or "the value")
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            found = nonfinite_field(v, f"{where}.{k}" if where else str(k), allow_inf)
+            if found:
+                return found
+    elif isinstance(obj, (list, tuple)):
+        for i, v in enumerate(obj):
+            found = nonfinite_field(v, f"{where}[{i}]", allow_inf)
+            if found:
+                return found
+    return None
+
+
+def refuse_nonfinite_record(obj: Any, what: str, allow_inf: bool = False) -> None:
+    """NimbusError naming ``what`` (a file, a store) and the field when ``obj`` holds a NaN (or, unless
+    ``allow_inf``, an infinite) float."""
+    field = nonfinite_field(obj, allow_inf=allow_inf)
+    if field is not None:
+        kind = "NaN" if allow_inf else "not a finite number (NaN or inf)"
+        raise NimbusError(f"refusing to write {what}: its field {field} is {kind}; a record with it would read "
+                          "back as garbage. Nothing was written")
+
+
 def atomic_write_json(path: str | os.PathLike, obj: Any) -> Path:
-    """Write ``obj`` as indented, key-sorted JSON (stable bytes for the same object)."""
+    """Write ``obj`` as indented, key-sorted JSON (stable bytes for the same object).
+
+    A NaN is refused (:func:`refuse_nonfinite_record`), naming the field.  An infinity still means something in
+    these files (the PSNR of identical images) and is written as Python's ``Infinity``.
+    """
+    refuse_nonfinite_record(obj, str(path), allow_inf=True)
     return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
 
 
+#: The longest name (one path component) Linux, macOS and Windows file systems take, in bytes.
+NAME_MAX = 255
 #: How much of a refused value a message shows: enough to find it, never a whole file's worth.
 SHOWN_CHARS = 80
 
@@ -72,12 +151,23 @@ def confined_path(root: str | os.PathLike, name: str | os.PathLike, what: str = 
     """
     if not isinstance(name, (str, os.PathLike)) or not str(name) or "\x00" in str(name):
         raise NimbusError(f"invalid {what} name {shown(name)}: expected a relative path inside {root}")
+    check_name_length(name, what)
     base = Path(root).resolve()
     path = (base / name).resolve()
     if path != base and base not in path.parents:
         raise NimbusError(f"{what} name {shown(str(name))} points outside {root}; names must be relative paths "
                           "inside the folder (no absolute paths, no '..', no links leading out)")
     return path
+
+
+def check_name_length(name: str | os.PathLike, what: str) -> None:
+    """NimbusError naming ``what`` when a part of ``name`` is longer than :data:`NAME_MAX` bytes, before the
+    operating system answers ENAMETOOLONG from somewhere deep in a read or a write."""
+    for part in Path(name).parts:
+        size = len(part.encode("utf-8", "surrogateescape"))
+        if size > NAME_MAX:
+            raise NimbusError(f"{what} name {shown(str(name))} has a part of {size} bytes; file systems take at most "
+                              f"{NAME_MAX} bytes per name: shorten it")
 
 
 def single_name(value: object, what: str) -> str:
@@ -88,7 +178,7 @@ def single_name(value: object, what: str) -> str:
     ``\\`` or NUL that is not ``.`` or ``..``, at most 255 bytes.
     """
     if (not isinstance(value, str) or value in ("", ".", "..") or any(c in value for c in "/\\\x00")
-            or len(value.encode("utf-8", "surrogatepass")) > 255):
+            or len(value.encode("utf-8", "surrogatepass")) > NAME_MAX):
         raise NimbusError(f"{what} is {shown(value)}, not a single file name (no '/', '\\', '..' or NUL); "
                           "it names a folder or file, so it must stay one name")
     return value
@@ -137,6 +227,9 @@ def check_output_dir(out: str | os.PathLike, overwrite: bool, inputs=(), flag: s
     (:data:`STORE_OR_SCENE_FILES`), whose files are not the command's to replace or mix with.
     """
     out = Path(out)
+    if out.is_symlink() and not out.exists():
+        raise NimbusError(f"{flag} {out} is a link to {shown(os.readlink(out))}, which does not exist; give a "
+                          f"folder path, or remove the link (nothing was written)")
     refuse_overlap(out, inputs, flag)
     try:
         if out.exists() and not out.is_dir():
@@ -199,18 +292,27 @@ def atomic_dir(out: str | os.PathLike, overwrite: bool = False, owner: str | Non
     out = check_output_dir(out, overwrite, owner=owner)
     # A folder left by a killed run (``.NAME.tmp-*`` whose process is gone) is ours to remove.
     remove_stale_temps(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
-    os.chmod(tmp, 0o755)  # mkdtemp makes 0700; the result should look like any other directory
-    (tmp / ".owner").write_text(str(os.getpid()))
     try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    except OSError as e:
+        problem = write_problem(e, out)
+        if problem is None:
+            raise
+        raise problem from None
+    try:
+        os.chmod(tmp, 0o755)  # mkdtemp makes 0700; the result should look like any other directory
+        (tmp / ".owner").write_text(str(os.getpid()))
         yield tmp
         (tmp / ".owner").unlink(missing_ok=True)
         if owner is not None:
             mark_output(tmp, owner)
-    except BaseException:
+    except BaseException as e:
         shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        problem = write_problem(e, tmp) if isinstance(e, OSError) else None
+        if problem is None:
+            raise
+        raise problem from None
     old = None
     if out.exists():
         old = out.parent / f".{out.name}.old-{os.getpid()}"

@@ -7,6 +7,7 @@ from dataclasses import replace
 
 from nimbus.cli_util import MAX_SEED, seed_arg
 from nimbus.config_set import apply_overrides, parse_set_args
+from nimbus.config_validation import field_problem
 from nimbus.errors import NimbusError
 from weather_synth.config import PROTOCOL_SUMMARIES, PROTOCOLS, SynthConfig, protocol_config
 from weather_synth.compose import COMPOSITION_ORDERS
@@ -91,9 +92,11 @@ def _intensity(text: str, preset, what: str):
         amount = float(text)
     except ValueError:
         return preset(text)
-    if not amount >= 0:
-        raise NimbusError(f"--{what} amount must be >= 0, got {text}")
-    return preset("medium", amount=amount)
+    config = preset("medium")
+    problem = field_problem(type(config), "amount", amount, type(config).LIMITS)
+    if problem:
+        raise NimbusError(f"--{what} {text}: the amount {problem}")
+    return replace(config, amount=amount)
 
 
 def config_from_args(args: argparse.Namespace, scene=None) -> SynthConfig:

@@ -35,6 +35,8 @@
 #include <c10/util/Exception.h>
 #include <torch/library.h>
 
+#include "interrupt.h"
+
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -56,6 +58,9 @@ constexpr int64_t kMinRaysPerPart = 2048;
 constexpr int64_t kMaxParts = 8;
 // Rays per forward task.
 constexpr int64_t kForwardGrain = 256;
+// Samples marched between two polls for Ctrl-C (interrupt.h): about a millisecond of work, in whole rays (at
+// least one), so a poll that does not ask Python (a clock read) is lost in the work however many samples a ray has.
+constexpr int64_t kSamplesPerPoll = int64_t(1) << 18;
 // Samples of a ray processed per block: features gathered first, then softplus in SIMD.
 // A multiple of kLanes (the float blocks run in whole vectors).
 constexpr int kChunk = 64;
@@ -339,7 +344,11 @@ at::Tensor march_forward(const at::Tensor& features, const at::Tensor& origin, c
     const Grid<T> g = make_grid<T>(features, lo, hi);
     const Rays<T> rays(origin, dirs, t_start, t_end, samples);
     T* S = out.data_ptr<T>();
-    at::parallel_for(0, P, kForwardGrain, [&](int64_t b, int64_t e) { run_forward(g, rays, b, e, S); });
+    nimbus_interrupt::Interrupt interrupt;
+    const int64_t block = std::max<int64_t>(1, kSamplesPerPoll / samples);
+    at::parallel_for(0, P, kForwardGrain, [&](int64_t b, int64_t e) {
+      for (int64_t r = b; r < e && !interrupt.stop(); r += block) run_forward(g, rays, r, std::min(e, r + block), S);
+    });
   });
   return out;
 }
@@ -362,11 +371,17 @@ at::Tensor march_backward(const at::Tensor& features, const at::Tensor& origin, 
     T* out = grad.data_ptr<T>();
     // Part 0 writes into the result; the others into their own grids, zeroed by their owner.
     std::unique_ptr<T[]> extra(parts > 1 ? new T[(parts - 1) * V] : nullptr);
+    nimbus_interrupt::Interrupt interrupt;
+    const int64_t block = std::max<int64_t>(1, kSamplesPerPoll / samples);
     auto work = [&](int64_t wb, int64_t we) {
       for (int64_t w = wb; w < we; ++w) {
         T* acc = w == 0 ? out : extra.get() + (w - 1) * V;
         if (w > 0) std::fill(acc, acc + V, T(0));
-        run_backward(g, rays, gS, P * w / parts, P * (w + 1) / parts, acc);
+        // In ray order, block by block: the same sums as one call over the part.
+        const int64_t end = P * (w + 1) / parts;
+        for (int64_t r = P * w / parts; r < end && !interrupt.stop(); r += block) {
+          run_backward(g, rays, gS, r, std::min(end, r + block), acc);
+        }
       }
     };
     if (parts == 1) {
