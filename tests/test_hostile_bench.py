@@ -678,9 +678,11 @@ def test_a_cell_that_meets_a_full_disk_is_recorded_as_failed_in_one_line(tmp_pat
 ])
 def test_a_record_with_a_non_finite_value_is_refused_naming_the_field(tmp_path, field, value, where):
     store = ResultsStore(tmp_path)
-    store.append({"cell_id": "ok", "status": "ok", "psnr": 20.0})
+    cell = {"status": "ok", "scene": "garden", "size": "tiny", "weather": "H", "method": "3dgs", "preset": "tiny",
+            "seed": 0}
+    store.append({**cell, "cell_id": "ok", "psnr": 20.0})
     before = store.path.read_bytes()
     with pytest.raises(NimbusError, match=rf"refusing to write a record of cell 'bad' .*: its field "
                                           rf"{re.escape(where)} is not a finite number"):
-        store.append({"cell_id": "bad", "status": "ok", field: value})
+        store.append({**cell, "cell_id": "bad", field: value})
     assert store.path.read_bytes() == before
