@@ -565,7 +565,8 @@ def run_cell(cell: dict | Cell, root: str, options: CellOptions | None = None) -
         JSON-ready record: the cell's fields; ``status`` ``"ok"`` or ``"error"`` (with
         ``error``); ``psnr`` (dB) / ``ssim`` / ``lpips`` means against the clean test views
         and ``per_view`` values; ``ssim_protocol``, ``lpips_net``, ``notes``;
-        ``psnr_vs_input`` / ``ssim_vs_input`` (the trainer's, against the degraded views);
+        ``psnr_vs_input`` / ``ssim_vs_input`` (the trainer's own score, when it was against the
+        degraded views; None when the data has ``clean/``, which the trainer then scores against);
         ``train_time_s``, ``peak_memory_mb`` (of the process that trained; of its last attempt for a cell
         resumed after an interruption, whose record has ``resumed_from_iteration``), ``num_gaussians``,
         ``num_params`` (+ ``num_params_source``), ``render_fps``, ``iterations``;
@@ -644,7 +645,9 @@ def _train_cell(cell: Cell, root: Path, options: CellOptions) -> dict:
         save_float_renders(model, partial, results.get("eval_split", "test"))
     os.replace(partial, final)
     out = {
-        "psnr_vs_input": results.get("psnr"), "ssim_vs_input": results.get("ssim"),
+        # The trainer scores against clean/ when the data has it: then its figures are psnr / ssim, not "vs input".
+        **({"psnr_vs_input": None, "ssim_vs_input": None} if results.get("eval_reference") == "clean" else
+           {"psnr_vs_input": results.get("psnr"), "ssim_vs_input": results.get("ssim")}),
         "train_time_s": results.get("train_time_s"), "peak_memory_mb": results.get("peak_memory_mb"),
         "num_gaussians": results.get("num_gaussians"), "num_params": num_params, "num_params_source": source,
         "render_fps": results.get("render_fps"), "iterations": results.get("iterations"),

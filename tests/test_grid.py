@@ -163,6 +163,7 @@ def test_local_run_records_and_scores_against_clean_views(finished):
             assert v["psnr"] != pytest.approx(psnr(read_image(render), read_image(data / "images" / v["name"])))
         assert rec["psnr"] == pytest.approx(np.mean([v["psnr"] for v in rec["per_view"]]))
         assert rec["lpips"] is None and rec["ssim_protocol"] == "3dgs"
+        assert rec["psnr_vs_input"] is None  # the trainer scored against clean/ too: no figure against the input
         assert rec["iterations"] == 5 and rec["num_gaussians"] > 0
         assert rec["num_params"] >= rec["num_gaussians"] * 11
         assert len(rec["config_hash"]) == 64 and rec["config"]["iterations"] == 5
