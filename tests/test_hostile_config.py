@@ -394,8 +394,11 @@ def test_the_weather_bounds_admit_the_stability_storm_and_the_presets():
 # march for minutes in one op, and torch.ops calls run without the GIL: Python only raised KeyboardInterrupt once
 # the op returned.  The march now polls for Ctrl-C between blocks of rays (nimbus/kernels/csrc/interrupt.h).
 MARCH_FOR_HOURS = textwrap.dedent("""
-    import sys, time, torch
+    import signal, sys, time, torch
     from nimbus.kernels.march import EXTENSION
+    # Python's own Ctrl-C handler, whatever disposition the test process leaves to its children (an earlier test
+    # in the same pytest process may have left SIGINT ignored, and an ignored SIGINT is inherited).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     assert EXTENSION.available()
     P, K = 10**5, 10**6  # 1e11 samples: hours of marching (K as large as a 64x48 view's memory check admits)
     f, o = torch.zeros(8, 8, 8), torch.tensor([-2.0, 0, 0])
