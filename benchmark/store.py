@@ -427,7 +427,8 @@ def load_results(root: str | os.PathLike, latest: bool = True, status: str | Non
     Returns
     -------
     pandas.DataFrame
-        Columns :data:`SCALAR_COLUMNS` (missing values NaN / None) plus ``per_view``
+        Columns :data:`SCALAR_COLUMNS` (missing values NaN / None; ``method`` is labelled by :func:`method_label` where the
+        store holds it under more than one set of ``--set`` overrides) plus ``per_view``
         (list of dicts) and ``record`` (the full record dict).
     """
     import pandas as pd
@@ -440,8 +441,25 @@ def load_results(root: str | os.PathLike, latest: bool = True, status: str | Non
     check_scene_hashes(recs, str(store.path))
     if status is not None:
         recs = [r for r in recs if r.get("status") == status]
-    rows = [{**{c: r.get(c) for c in SCALAR_COLUMNS}, "per_view": r.get("per_view"), "record": r} for r in recs]
+    settings: dict[str, set[str]] = {}
+    for r in recs:
+        settings.setdefault(r.get("method"), set()).add(json.dumps(r.get("overrides") or {}, sort_keys=True))
+    rows = [{**{c: r.get(c) for c in SCALAR_COLUMNS}, "per_view": r.get("per_view"), "record": r,
+             "method": method_label(r) if len(settings[r.get("method")]) > 1 else r.get("method")} for r in recs]
     return pd.DataFrame(rows, columns=[*SCALAR_COLUMNS, "per_view", "record"])
+
+
+def method_label(record: dict) -> str:
+    """A record's method with its ``--set`` overrides, if it had any (``nimbus[lambda_dehaze=0]``).
+
+    :func:`load_results` labels a method's records so when the store holds that method under more than one set of
+    overrides, so that a cell trained with other settings is never averaged into the method's row; a grid run
+    whole with one ``--set`` keeps its methods' names.
+    """
+    overrides = record.get("overrides") or {}
+    if not overrides:
+        return record.get("method")
+    return f"{record.get('method')}[{','.join(f'{k}={v}' for k, v in sorted(overrides.items()))}]"
 
 
 def export_parquet(root: str | os.PathLike, out: str | os.PathLike) -> Path:

@@ -513,3 +513,20 @@ def test_reference_data_is_declared_package_data():
     assert reference.REGRESSION_REFERENCE == REGRESSION_REFERENCE and REGRESSION_REFERENCE.is_file()
     assert len(list(PAPER_DIR.glob("*.csv"))) == 7
     assert len(list(PAPER_ABLATIONS_DIR.glob("*.csv"))) == 5
+
+
+def test_a_cell_trained_with_overrides_is_its_own_row_never_averaged_into_the_method(tmp_path):
+    from benchmark.store import load_results
+
+    store = ResultsStore(tmp_path)
+    base = {"scene": "street", "size": "small", "weather": "H", "method": "nimbus", "preset": "fast", "seed": 0,
+            "status": "ok", "ssim": 0.8, "lpips": 0.1, "ssim_protocol": "3dgs", "lpips_net": "vgg"}
+    store.append({**base, "cell_id": "street-small_H_nimbus_fast_s0", "psnr": 22.93})
+    store.append({**base, "cell_id": "street-small_H_nimbus_fast_s0_c7a2b848", "psnr": 19.58,
+                  "overrides": {"lambda_dehaze": "0", "airlight": "constant"}})
+    df = load_results(tmp_path)
+    assert sorted(df["method"]) == ["nimbus", "nimbus[airlight=constant,lambda_dehaze=0]"]
+    assert df.set_index("method")["psnr"]["nimbus"] == 22.93
+    assert run_cli(TOOL.run, ["tables", "--root", str(tmp_path), "--out", str(tmp_path / "t")]) == 0
+    table = (tmp_path / "t" / "weather_H.md").read_text()
+    assert "| 22.93 |" in table.replace("**", "") and "nimbus[airlight=constant,lambda_dehaze=0]" in table
