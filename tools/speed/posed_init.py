@@ -3,7 +3,7 @@
 Usage::
 
     python -m tools.speed.posed_init [--scenes garden,street] [--size small] [--preset fast]
-                                     [--inits scene,triangulated,random] [--work DIR] [--json OUT] [--seed 0]
+                                     [--inits scene,triangulated,densified,random] [--work DIR] [--json OUT] [--seed 0]
 
 For each built-in scene it writes the scene as transforms.json twice, with its sparse points
 (``sparse_pc.ply``) and without, and trains 3DGS (``--preset``) on
@@ -11,7 +11,9 @@ For each built-in scene it writes the scene as transforms.json twice, with its s
 * ``scene``: the exported points (the built-in scenes' points, unprojected from exact depth maps);
 * ``triangulated``: the points-less export, so ``nimbus-train`` triangulates its training views with the
   poses fixed (:mod:`nimbus.data.triangulate`; below 500 points it falls back to random points, and the
-  table says so);
+  table says so), with ``--set init_densify=0``;
+* ``densified``: the same with ``--set init_densify=10000``: the triangulated points and 10,000 pixels of
+  the training views at the depth of nearby points or on the backdrop (:mod:`nimbus.data.densify`);
 * ``random``: the points-less export with ``--set init_triangulate=false``: random points about the
   cameras' focus, or in their frusta for a forward-facing capture (:mod:`nimbus.data.camera_focus`).
 
@@ -34,7 +36,9 @@ from pathlib import Path
 
 import numpy as np
 
-INITS = ("scene", "triangulated", "random")
+INITS = ("scene", "triangulated", "densified", "random")
+#: Pixels of the training views added to the triangulated points by the ``densified`` runs.
+DENSIFY = 10_000
 
 
 def _export(name: str, size: str, seed: int, work: Path) -> tuple[Path, Path]:
@@ -87,7 +91,8 @@ def main(argv: list[str] | None = None) -> int:
     for name in [s.strip() for s in args.scenes.split(",") if s.strip()]:
         print(f"{name} ({args.size}, {args.preset}):", flush=True)
         with_dir, without_dir = _export(name, args.size, args.seed, args.work)
-        runs = {"scene": (with_dir, []), "triangulated": (without_dir, []),
+        runs = {"scene": (with_dir, []), "triangulated": (without_dir, ["--set", "init_densify=0"]),
+                "densified": (without_dir, ["--set", f"init_densify={DENSIFY}"]),
                 "random": (without_dir, ["--set", "init_triangulate=false"])}
         for init in inits:
             scene, extra = runs[init]
