@@ -22,6 +22,7 @@ from nimbus.data.io import load_scene, write_scene
 from nimbus.data.scene import Scene, View, llff_test_names
 from nimbus.data.triangulate import (MIN_TRIANGULATED_POINTS, TriangulationConfig, pose_neighbour_pairs,
                                      triangulate_posed, triangulation_key)
+from nimbus.errors import NimbusError
 from nimbus.train.config import preset
 from nimbus.train.runner import Runner
 from weather_synth.commands import sfm as sfm_command
@@ -115,7 +116,7 @@ def test_points_less_capture_trains_from_triangulated_points(garden_few, cache, 
     import nimbus.train.init_points as init_points
 
     scene = load_scene(garden_few)
-    config = dataclasses.replace(preset("tiny"), iterations=2)
+    config = dataclasses.replace(preset("tiny"), iterations=2, init_densify=0)  # densified below
     with caplog.at_level(logging.WARNING, logger="nimbus.train.init_points"):
         # Six small views give about 420 points: fewer than the threshold, so random points about the focus.
         low = Runner("3dgs", scene, config, tmp_path / "low", progress=False)
@@ -142,7 +143,8 @@ def test_points_less_capture_trains_from_triangulated_points(garden_few, cache, 
     # Switched off: straight to random points, and no triangulation is attempted.
     off = Runner("3dgs", scene, dataclasses.replace(config, init_triangulate=False), tmp_path / "off", progress=False)
     assert off.init_points["triangulation"] == {"skipped": "triangulation is off (init_triangulate=false)"}
-    # Densified: the triangulated points and pixels of the training views, said and recorded.
+    # Densified (by default): the triangulated points and pixels of the training views, said and recorded.
+    assert preset("tiny").init_densify > 0 and preset("fast").init_densify > 0
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="nimbus.train.init_points"):
         dense = Runner("3dgs", scene, dataclasses.replace(config, init_densify=600), tmp_path / "dense", progress=False)
@@ -226,7 +228,8 @@ def test_sfm_known_poses_refuses_images_too_small(tmp_path, cache, capsys):
 
 
 def _foreground_points(views, max_depth, step=7):
-    """Stand-ins for triangulated points: every ``step``-th pixel of each view nearer than ``max_depth``, on its surface."""
+    """Stand-ins for triangulated points: every ``step``-th pixel of each view nearer than ``max_depth``, on the
+    surface."""
     pts, cols = [], []
     for v in views:
         cam, depth, img = v.camera, v.load_depth(), v.load_image()
@@ -270,6 +273,8 @@ def test_densified_cloud_covers_the_backdrop_and_is_deterministic(garden_views):
     again = densify_points(views, pts, cols, config)
     np.testing.assert_array_equal(again[0], dense)
     np.testing.assert_array_equal(again[1], dense_cols)
+    with pytest.raises(NimbusError, match="set init_densify to at most"):  # more than the views' pixels
+        densify_points(views, pts, cols, dataclasses.replace(config, samples=10**9))
     other = densify_points(views, pts, cols, dataclasses.replace(config, seed=4))[0]
     assert other.shape[1] == 3 and not np.array_equal(other[len(pts):len(pts) + 100], added[:100])
 

@@ -12,8 +12,9 @@ For each built-in scene it writes the scene as transforms.json twice, with its s
 * ``triangulated``: the points-less export, so ``nimbus-train`` triangulates its training views with the
   poses fixed (:mod:`nimbus.data.triangulate`; below 500 points it falls back to random points, and the
   table says so), with ``--set init_densify=0``;
-* ``densified``: the same with ``--set init_densify=10000``: the triangulated points and 10,000 pixels of
-  the training views at the depth of nearby points or on the backdrop (:mod:`nimbus.data.densify`);
+* ``densified``: the same with ``--set init_densify=10000`` (the default): the triangulated points and
+  10,000 pixels of the training views at the depth of nearby points or on the backdrop
+  (:mod:`nimbus.data.densify`);
 * ``random``: the points-less export with ``--set init_triangulate=false``: random points about the
   cameras' focus, or in their frusta for a forward-facing capture (:mod:`nimbus.data.camera_focus`).
 
