@@ -88,7 +88,7 @@ class TrainConfig:
     # a scene without sparse points: triangulate its posed training views (cached) before random points
     init_triangulate: bool = True
     # triangulated points: add this many pixels of the training views (the backdrop included), 0: off
-    init_densify: int = 10_000
+    init_densify: int = 30_000
     # training images: shrunk by this integer factor (test views stay full size)
     train_downscale: int = 1
     # rendering
