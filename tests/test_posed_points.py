@@ -22,6 +22,7 @@ from nimbus.data.io import load_scene, write_scene
 from nimbus.data.scene import Scene, View, llff_test_names
 from nimbus.data.triangulate import (MIN_TRIANGULATED_POINTS, TriangulationConfig, pose_neighbour_pairs,
                                      triangulate_posed, triangulation_key)
+from nimbus.errors import NimbusError
 from nimbus.train.config import preset
 from nimbus.train.runner import Runner
 from weather_synth.commands import sfm as sfm_command
@@ -115,7 +116,7 @@ def test_points_less_capture_trains_from_triangulated_points(garden_few, cache, 
     import nimbus.train.init_points as init_points
 
     scene = load_scene(garden_few)
-    config = dataclasses.replace(preset("tiny"), iterations=2)
+    config = dataclasses.replace(preset("tiny"), iterations=2, init_densify=0)  # densified below
     with caplog.at_level(logging.WARNING, logger="nimbus.train.init_points"):
         # Six small views give about 420 points: fewer than the threshold, so random points about the focus.
         low = Runner("3dgs", scene, config, tmp_path / "low", progress=False)
@@ -142,6 +143,17 @@ def test_points_less_capture_trains_from_triangulated_points(garden_few, cache, 
     # Switched off: straight to random points, and no triangulation is attempted.
     off = Runner("3dgs", scene, dataclasses.replace(config, init_triangulate=False), tmp_path / "off", progress=False)
     assert off.init_points["triangulation"] == {"skipped": "triangulation is off (init_triangulate=false)"}
+    # Densified (by default): the triangulated points and pixels of the training views, said and recorded.
+    assert preset("tiny").init_densify > 0 and preset("fast").init_densify > 0
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="nimbus.train.init_points"):
+        dense = Runner("3dgs", scene, dataclasses.replace(config, init_densify=600), tmp_path / "dense", progress=False)
+    rec = dense.init_points
+    assert rec["source"] == "triangulated" and rec["triangulation"]["points"] == n
+    assert rec["points"] == n + rec["densify"]["samples"] == len(dense.scene.points) == dense.method.num_gaussians
+    assert rec["densify"]["samples"] + rec["densify"]["dropped"] == 600 and rec["densify"]["far"] > 0
+    [line] = [r.getMessage() for r in caplog.records]
+    assert f"densified with {rec['densify']['samples']} pixels" in line and "init_densify=600" in line
 
 
 def test_points_less_tiny_garden_starts_about_the_subject(tmp_path, cache, caplog):
@@ -213,3 +225,65 @@ def test_sfm_known_poses_refuses_images_too_small(tmp_path, cache, capsys):
                        tmp_path / "tiny")
     assert run_cli(lambda _: sfm_command.run(_args("--known-poses", str(bare)))) == 2
     assert "too small to triangulate" in capsys.readouterr().err and not cache.exists()
+
+
+def _foreground_points(views, max_depth, step=7):
+    """Stand-ins for triangulated points: every ``step``-th pixel of each view nearer than ``max_depth``, on the
+    surface."""
+    pts, cols = [], []
+    for v in views:
+        cam, depth, img = v.camera, v.load_depth(), v.load_image()
+        vv, uu = np.mgrid[step // 2:cam.height:step, step // 2:cam.width:step]
+        z = depth[vv, uu]
+        ok = np.isfinite(z) & (z < max_depth)
+        uv = np.stack([uu[ok] + 0.5, vv[ok] + 0.5], 1)
+        rays = np.stack([(uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy, np.ones(len(uv))], 1)
+        pts.append((rays * z[ok][:, None] - cam.t) @ cam.R)
+        cols.append((img[vv[ok], uu[ok]] * 255).astype(np.uint8))
+    return np.concatenate(pts), np.concatenate(cols)
+
+
+def test_densified_cloud_covers_the_backdrop_and_is_deterministic(garden_views):
+    from nimbus.data.densify import DensifyConfig, densify_points
+
+    views = garden_views.train_views[:3]
+    depths = np.concatenate([v.load_depth().ravel() for v in views])
+    max_depth = float(np.percentile(depths[np.isfinite(depths)], 60))  # SIFT-like: nothing on the far 40 %
+    pts, cols = _foreground_points(views, max_depth)
+    config = DensifyConfig(samples=1500, seed=3)
+    dense, dense_cols, info = densify_points(views, pts, cols, config)
+    np.testing.assert_array_equal(dense[:len(pts)], pts)  # the triangulated points come first, unchanged
+    added = dense[len(pts):]
+    assert len(added) == info["samples"] == info["near"] + info["far"] and info["samples"] + info["dropped"] == 1500
+    assert info["far"] > 200 and info["near"] > 200
+    # The backdrop is covered: points beyond every triangulated depth, along rays of far pixels.
+    z_tri = np.concatenate([v.camera.project(pts)[1] for v in views[:1]])
+    uv, z = views[0].camera.project(added)
+    beyond = z > z_tri[z_tri > 0].max()
+    assert beyond.sum() > 50
+    u = np.floor(uv[beyond]).astype(int)
+    inside = (u[:, 0] >= 0) & (u[:, 0] < views[0].camera.width) & (u[:, 1] >= 0) & (u[:, 1] < views[0].camera.height)
+    true = views[0].load_depth()[u[inside, 1], u[inside, 0]]
+    assert np.mean(~np.isfinite(true) | (true > max_depth)) > 0.9  # far points sit on far pixels (or the sky)
+    # Near samples take the depth of the surface about them.
+    err = _depth_error(added[np.linalg.norm(added - views[0].camera.center, axis=1) < max_depth], views)
+    assert np.median(err) < 0.05
+    # Coloured from the photos, and the same seed gives the same cloud; another seed another.
+    assert dense_cols.dtype == np.uint8 and dense_cols[len(pts):].std() > 10
+    again = densify_points(views, pts, cols, config)
+    np.testing.assert_array_equal(again[0], dense)
+    np.testing.assert_array_equal(again[1], dense_cols)
+    with pytest.raises(NimbusError, match="set init_densify to at most"):  # more than the views' pixels
+        densify_points(views, pts, cols, dataclasses.replace(config, samples=10**9))
+    other = densify_points(views, pts, cols, dataclasses.replace(config, seed=4))[0]
+    assert other.shape[1] == 3 and not np.array_equal(other[len(pts):len(pts) + 100], added[:100])
+
+
+def test_densify_leaves_scenes_with_points_alone(garden_views, cache):
+    from nimbus.train.init_points import choose_init_points
+
+    pts, cols = _foreground_points(garden_views.train_views[:2], 1e9, step=20)
+    scene = dataclasses.replace(garden_views, points=pts, colors=cols)
+    init = choose_init_points(scene, dataclasses.replace(preset("tiny"), init_densify=5000))
+    assert init.scene is scene and init.record == {"source": "scene", "points": len(pts)} and init.line is None
+    assert not cache.exists()

@@ -47,6 +47,9 @@ class TrainConfig:
     pycolmap (cached in ``$NIMBUS_CACHE/triangulated``); where that finds too few,
     ``init_random_points`` random points about the cameras' focus, or in their view frusta for a
     forward-facing capture (:mod:`nimbus.data.camera_focus`).  A scene with points starts from them.
+    Triangulated points are densified with ``init_densify`` pixels of the training views, each at
+    the depth of the points projected near it or, where none is, at a far depth, so the backdrop
+    SIFT found nothing on gets Gaussians to grow from (:mod:`nimbus.data.densify`; 0 turns it off).
     """
 
     iterations: int = 30_000
@@ -84,6 +87,8 @@ class TrainConfig:
     init_random_points: int = 10_000
     # a scene without sparse points: triangulate its posed training views (cached) before random points
     init_triangulate: bool = True
+    # triangulated points: add this many pixels of the training views (the backdrop included), 0: off
+    init_densify: int = 30_000
     # training images: shrunk by this integer factor (test views stay full size)
     train_downscale: int = 1
     # rendering
@@ -113,6 +118,7 @@ class TrainConfig:
         "opacity_reset_interval": at_least(1), "opacity_reset_value": between(0, 1, lo_open=True, hi_open=True),
         "max_gaussians": at_least(1),
         "init_opacity": between(0, 1, lo_open=True, hi_open=True), "init_random_points": at_least(0),
+        "init_densify": at_least(0, note="0: off"),
         "train_downscale": at_least(1),
         "background": fraction(note="R, G, B"),
         "backend": one_of(*BACKENDS),

@@ -8,7 +8,10 @@ here happens.  A posed capture without points (transforms.json, a COLMAP model w
    (:func:`nimbus.data.triangulate.triangulate_posed`, cached by content in the user cache, never in
    the scene folder), when there are at least :data:`~nimbus.data.triangulate.MIN_TRIANGULATED_POINTS`.  They become the
    scene's sparse points for the run, so what methods read from them (NimbusGS's haze evidence,
-   the medium's initial estimate) sees measured surfaces.
+   the medium's initial estimate) sees measured surfaces.  With ``init_densify`` > 0 that many
+   pixels of the training views are added to them (:mod:`nimbus.data.densify`): at the depth of
+   nearby triangulated points, or on the backdrop at a far depth (a guess, which those methods
+   then read as well).
 2. ``focus`` or ``forward``: otherwise ``init_random_points`` random points placed from the cameras
    (:mod:`nimbus.data.camera_focus`) by the method's :func:`~nimbus.render.gaussians.init_from_scene`.
    They are not added to the scene: they are not measurements.
@@ -30,6 +33,7 @@ from pathlib import Path
 from typing import Callable
 
 from nimbus.data import Scene
+from nimbus.data.densify import DensifyConfig, densify_points
 from nimbus.data.triangulate import MIN_TRIANGULATED_POINTS, triangulate_posed, triangulation_skip_reason
 from nimbus.errors import NimbusError
 from nimbus.render.gaussians import GaussianInitConfig, random_init_plan
@@ -47,7 +51,8 @@ class InitPoints:
         The scene to train on: as given, or with the triangulated points as its sparse points.
     record : dict
         ``source`` (``"scene"``, ``"triangulated"``, ``"focus"`` or ``"forward"``), ``points`` (the
-        count), and for a points-less scene ``triangulation`` (its info, or why it was skipped) and,
+        count), and for a points-less scene ``triangulation`` (its info, or why it was skipped),
+        ``densify`` (:func:`~nimbus.data.densify.densify_points`'s info, when it was used) and,
         for random points, ``random`` (where: :meth:`~nimbus.data.camera_focus.RandomInitPlan.to_dict`).
     line : str or None
         The one-line notice (None when the scene had points).
@@ -76,7 +81,7 @@ def choose_init_points(scene: Scene, config, seed: int = 0, cache_dir: str | os.
     scene : Scene
         As loaded (world coordinates).
     config : TrainConfig
-        ``init_triangulate``, ``init_random_points`` and ``sh_degree`` are read.
+        ``init_triangulate``, ``init_densify`` and ``init_random_points`` are read.
     seed : int
         The run's seed (random points).
     cache_dir : path, optional
@@ -100,10 +105,17 @@ def choose_init_points(scene: Scene, config, seed: int = 0, cache_dir: str | os.
                      f"cached in {_home(tri_record['cache'])}; the scene folder is not written")
             line = (f"init: the scene has no sparse points: triangulated {len(tri.points)} points from "
                     f"{len(views)} posed training views with the poses fixed ({where})")
+            points, colors, record = tri.points, tri.colors, {"source": "triangulated", "points": int(len(tri.points)),
+                                                              "triangulation": tri_record}
+            n_dense = int(getattr(config, "init_densify", 0))
+            if n_dense > 0:
+                points, colors, dense = densify_points(views, tri.points, tri.colors,
+                                                       DensifyConfig(samples=n_dense, seed=seed))
+                record = {**record, "points": int(len(points)), "densify": dense}
+                line += (f"; densified with {dense['samples']} pixels of the training views ({dense['near']} at the "
+                         f"depth of nearby points, {dense['far']} on the backdrop; init_densify={n_dense})")
             log.warning("%s", line)
-            return InitPoints(dataclasses.replace(scene, points=tri.points, colors=tri.colors),
-                              {"source": "triangulated", "points": int(len(tri.points)), "triangulation": tri_record},
-                              line)
+            return InitPoints(dataclasses.replace(scene, points=points, colors=colors), record, line)
         why = (f"triangulation found {len(tri.points)} points in {len(views)} posed training views "
                f"(< {MIN_TRIANGULATED_POINTS})")
     n_random = int(config.init_random_points)

@@ -3,7 +3,8 @@
 Usage::
 
     python -m tools.speed.posed_init [--scenes garden,street] [--size small] [--preset fast]
-                                     [--inits scene,triangulated,random] [--work DIR] [--json OUT] [--seed 0]
+                                     [--inits scene,triangulated,densified,random] [--densify N]
+                                     [--work DIR] [--json OUT] [--seed 0]
 
 For each built-in scene it writes the scene as transforms.json twice, with its sparse points
 (``sparse_pc.ply``) and without, and trains 3DGS (``--preset``) on
@@ -11,7 +12,10 @@ For each built-in scene it writes the scene as transforms.json twice, with its s
 * ``scene``: the exported points (the built-in scenes' points, unprojected from exact depth maps);
 * ``triangulated``: the points-less export, so ``nimbus-train`` triangulates its training views with the
   poses fixed (:mod:`nimbus.data.triangulate`; below 500 points it falls back to random points, and the
-  table says so);
+  table says so), with ``--set init_densify=0``;
+* ``densified``: the same with ``--set init_densify=N`` (``--densify N``, default the trainer's default):
+  the triangulated points and N pixels of the training views at the depth of nearby points or on the
+  backdrop (:mod:`nimbus.data.densify`);
 * ``random``: the points-less export with ``--set init_triangulate=false``: random points about the
   cameras' focus, or in their frusta for a forward-facing capture (:mod:`nimbus.data.camera_focus`).
 
@@ -34,7 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
-INITS = ("scene", "triangulated", "random")
+from nimbus.train.config import TrainConfig
+
+INITS = ("scene", "triangulated", "densified", "random")
 
 
 def _export(name: str, size: str, seed: int, work: Path) -> tuple[Path, Path]:
@@ -75,6 +81,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--size", default="small")
     p.add_argument("--preset", default="fast")
     p.add_argument("--inits", default=",".join(INITS), help=f"comma list of {', '.join(INITS)}")
+    p.add_argument("--densify", type=int, default=TrainConfig.init_densify,
+                   help="pixels added to the triangulated points by the densified runs (init_densify)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--work", type=Path, default=Path("runs/posed_init"))
     p.add_argument("--json", type=Path)
@@ -87,11 +95,13 @@ def main(argv: list[str] | None = None) -> int:
     for name in [s.strip() for s in args.scenes.split(",") if s.strip()]:
         print(f"{name} ({args.size}, {args.preset}):", flush=True)
         with_dir, without_dir = _export(name, args.size, args.seed, args.work)
-        runs = {"scene": (with_dir, []), "triangulated": (without_dir, []),
+        runs = {"scene": (with_dir, []), "triangulated": (without_dir, ["--set", "init_densify=0"]),
+                "densified": (without_dir, ["--set", f"init_densify={args.densify}"]),
                 "random": (without_dir, ["--set", "init_triangulate=false"])}
         for init in inits:
             scene, extra = runs[init]
-            out = args.work / name / f"run-{init}-{args.preset}-s{args.seed}"
+            tag = f"densified{args.densify}" if init == "densified" else init
+            out = args.work / name / f"run-{tag}-{args.preset}-s{args.seed}"
             rows.append({"scene": name, "run": init, **_train(scene, out, args, extra)})
     print(f"\n{'scene':<10} {'run':<13} {'init':<13} {'points':>7} {'PSNR':>7} {'SSIM':>7} {'vs scene':>9} {'time':>7}")
     for r in rows:
