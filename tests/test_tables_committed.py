@@ -65,6 +65,17 @@ def test_default_tiny_tables_regenerate(tmp_path, capsys):
     same_files(out, TABLES / "default_tiny")
 
 
+def test_street_small_h_tables_regenerate(tmp_path, capsys):
+    """NimbusGS with and without the dehazed-view prior against restore-3dgs on the small street, H (issue 34)."""
+    root = tmp_path / "street"
+    root.mkdir()
+    shutil.copyfile(TABLES / "street_small_H" / "results.jsonl", root / "results.jsonl")
+    out = tmp_path / "out"
+    assert run_cli(TOOL.run, ["tables", "--root", str(root), "--out", str(out), "--methods", "nimbus,restore-3dgs"]) == 0
+    capsys.readouterr()
+    same_files(out, TABLES / "street_small_H")
+
+
 def test_validation_tiny_summaries_regenerate():
     """Every ``tools.validation_cells --summary`` block in tables/validation_tiny/README.md is followed by its output."""
     from tools.validation_cells import summary
