@@ -609,3 +609,18 @@ def test_a_full_disk_after_a_checkpoint_leaves_a_run_that_resumes(tmp_path, caps
     code, err = cli(["--resume", out, "--quiet"], capsys)  # space freed: the run finishes
     assert code == 0, err
     assert (out / "results.json").is_file()
+
+
+@pytest.mark.parametrize("edited", ["robust-3dgs", "restore-3dgs"])
+def test_resume_refuses_a_run_whose_config_names_another_method(run, capsys, edited):
+    # A config.json whose method was edited loaded the checkpoint into another method's class: restore-3dgs took
+    # the 3dgs state whole and "resumed" (exit 0, a silent wrong run); robust-3dgs failed on a missing key.  The
+    # checkpoint now names its method, and a mismatch is one error line naming both.
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["method"] == "3dgs"
+    cfg["method"] = edited
+    (run / "config.json").write_text(json.dumps(cfg))
+    before = snapshot(run)
+    code, err = cli(["--resume", run, "--quiet"], capsys)
+    assert_one_error(code, err, "was written by method '3dgs'", f"config.json says '{edited}'")
+    assert snapshot(run) == before

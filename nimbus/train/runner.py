@@ -316,9 +316,10 @@ class Runner:
     # --- checkpoints ---------------------------------------------------------------------
     def state_dict(self) -> dict:
         """The checkpoint: the runner's keys (iteration, train_time, frame, visible_steps, mid_step: saved by an
-        interrupt inside a step) and the method's state_dict."""
+        interrupt inside a step; run_method: the method's registry name) and the method's state_dict."""
         return {"iteration": self.iteration, "train_time": float(self.train_time), "frame": self.frame.as_list(),
-                "visible_steps": self.visible_steps, "mid_step": self._in_step, **self.method.state_dict()}
+                "visible_steps": self.visible_steps, "mid_step": self._in_step, "run_method": self.method_name,
+                **self.method.state_dict()}
 
     def _keep_last_good(self) -> str:
         """Save the last good state and say where (empty for a run without checkpoints: nothing was saved)."""
@@ -346,6 +347,14 @@ class Runner:
             if not np.allclose([float(x) for x in state["frame"]], self.frame.as_list(), rtol=1e-9, atol=0):
                 raise ValueError(f"it was trained in the frame {state['frame']}, this scene's is "
                                  f"{self.frame.as_list()}")
+            # A config.json whose method was edited would load one method's state into another's class (3dgs
+            # resumed as restore-3dgs trains on other targets): refused.  Checkpoints from before the name was
+            # saved cannot be checked.
+            saved_method = state.get("run_method")
+            if saved_method is not None and saved_method != self.method_name:
+                raise NimbusError(f"checkpoint {path} was written by method {saved_method!r}, but the run's "
+                                  f"config.json says {self.method_name!r} (was it edited?); restore config.json's "
+                                  "'method' or start a new run with --out")
             # Checked before anything is restored or the log is cut back to the iteration: a negative one
             # would leave no line of it (every line is "after" it).
             iteration, train_time = _count(state, "iteration"), float(state["train_time"])
