@@ -437,3 +437,32 @@ def test_dehazed_view_prior_adds_the_photometric_loss_at_its_stage_weight(hazy, 
             without = float(m.loss(step, vi, render, gt)[0])
             m.prior_clean = prior
             assert with_prior - without == pytest.approx(weight * term, rel=1e-5)
+
+
+def test_dehazed_view_prior_on_surfaces_only_leaves_the_sky_out(hazy, tmp_path, monkeypatch):
+    from nimbus.methods.nimbusgs.losses import stage_loss
+
+    m = _nimbus(hazy, _cfg(lambda_dehaze=1.0, components="csm", prior_surface_only=True), tmp_path / "run").method
+    vi = 1
+    gt = m.train_images[vi]
+    with torch.no_grad():
+        render = m.render(m.train_views[vi].camera)
+        m.loss(1, vi, render, gt)  # the first call sets stage 1 up; the figures below compare later calls
+        h, w = gt.shape[:2]
+        surface = torch.zeros(h, w, dtype=torch.bool)
+        surface[: h // 2] = True  # the top half "reaches a surface", the rest is "sky"
+        monkeypatch.setattr(m.medium, "surface_mask", lambda rays, r: surface)
+        with_prior = float(m.loss(1, vi, render, gt)[0])
+        prior, m.prior_clean = m.prior_clean, None
+        without = float(m.loss(1, vi, render, gt)[0])
+        m.prior_clean = prior
+        clean = m.compose(vi, render)["clean"]
+        term = float(stage_loss(clean, prior[vi], m.cfg.lambda_dssim, surface))
+        assert with_prior - without == pytest.approx(term, rel=1e-5)
+        assert term != pytest.approx(float(stage_loss(clean, prior[vi], m.cfg.lambda_dssim, None)), rel=1e-3)
+        monkeypatch.setattr(m.medium, "surface_mask", lambda rays, r: torch.zeros_like(surface))
+        assert float(m.loss(1, vi, render, gt)[0]) != pytest.approx(with_prior, rel=1e-3)
+        m.prior_clean = None
+        all_sky_without = float(m.loss(1, vi, render, gt)[0])
+        m.prior_clean = prior
+        assert float(m.loss(1, vi, render, gt)[0]) == pytest.approx(all_sky_without, rel=1e-6)  # no prior term

@@ -225,6 +225,12 @@ class NimbusConfig(TrainConfig):
         Remove bright particles (:func:`nimbus.restore.classical.remove_particles`) from a view
         before dehazing it for the prior (a rain streak divided by a low transmission is amplified).
         Not measured on the validation cells yet; off.
+    prior_surface_only : bool
+        Apply the prior only where the ray march reaches a surface inside the box (as
+        ``dcp_surface_only`` does for L_DCP).  The dark-channel prior is false on the sky (a bright
+        sky reads as thick haze), and the decomposition of the small street under haze shows the
+        prior pulling the sky dark (``tables/street_small_H``).  Off until measured on the
+        validation cells (``tables/validation_tiny``, tag ``prior-surface``).
 
     Particulate layer (PLM)
     -----------------------
@@ -349,6 +355,7 @@ class NimbusConfig(TrainConfig):
     lambda_dehaze: float = 1.0
     prior_stage2: float = 1.0
     prior_particles: bool = False
+    prior_surface_only: bool = False
     # PLM
     residual_source: str = "render"
     residual_outlier_sigmas: float = 3.0

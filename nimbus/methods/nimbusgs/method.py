@@ -301,9 +301,14 @@ class NimbusGS(GaussianSplatting):
                 loss = loss + c.lambda_tv * self.medium.field.tv()
             if self.prior_clean is not None:
                 weight = c.lambda_dehaze * (1.0 if self.stage == 1 else c.prior_stage2)
+                mask = self.train_masks[view_index]
+                if weight > 0 and c.prior_surface_only:  # not on the sky, where the dark-channel prior is false
+                    surface = self.medium.surface_mask(self._rays_for(view_index), render)
+                    mask = surface if mask is None else surface & mask
+                    weight = weight if bool(mask.any()) else 0.0
                 if weight > 0:
                     loss = loss + weight * stage_loss(parts["clean"], self.prior_clean[view_index], c.lambda_dssim,
-                                                      self.train_masks[view_index])
+                                                      mask)
         return loss, pred.detach()
 
     def reweight_gradients(self, step: int, view_index: int, render: dict, pred: Tensor, gt: Tensor,
