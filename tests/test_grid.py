@@ -6,11 +6,13 @@ so a cell costs well under a second plus its process start-up.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
 import shutil
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -534,3 +536,48 @@ def test_worker_threads_count_the_cores_this_process_may_use(monkeypatch):
     assert LocalExecutor(jobs=2).threads() == 4 and LocalExecutor(jobs=16).threads() == 1
     monkeypatch.delattr(os, "sched_getaffinity", raising=False)  # no affinity query (macOS): the machine's count
     assert LocalExecutor(jobs=2).threads() == 32
+
+
+PARENT_WITH_A_BUSY_CHILD = """
+import multiprocessing, os, sys, time
+from benchmark.workers import exit_with_parent
+
+def busy(parent, ready):
+    exit_with_parent(parent, poll_s=0.1)
+    open(ready, "w").close()
+    while True:  # a cell that would train for an hour
+        time.sleep(0.01)
+
+if __name__ == "__main__":
+    ready = sys.argv[1]
+    child = multiprocessing.get_context("spawn").Process(target=busy, args=(os.getpid(), ready))
+    child.start()
+    while not os.path.exists(ready):
+        time.sleep(0.01)
+    print(child.pid, flush=True)
+    time.sleep(60)
+"""
+
+
+def test_a_worker_exits_soon_after_its_parent_is_killed(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "parent.py"
+    script.write_text(PARENT_WITH_A_BUSY_CHILD)
+    parent = subprocess.Popen([sys.executable, str(script), str(tmp_path / "ready")], stdout=subprocess.PIPE, text=True,
+                              cwd=Path(__file__).resolve().parents[1])
+    child = int(parent.stdout.readline())
+    try:
+        os.kill(parent.pid, signal.SIGKILL)  # no cleanup runs in the parent
+        parent.wait(timeout=30)
+        deadline = time.monotonic() + 30  # a guard; it takes about the poll interval
+        while time.monotonic() < deadline and Path(f"/proc/{child}").exists() and \
+                Path(f"/proc/{child}/stat").read_text().split()[2] != "Z":
+            time.sleep(0.05)
+        assert not Path(f"/proc/{child}").exists() or Path(f"/proc/{child}/stat").read_text().split()[2] == "Z"
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(child, signal.SIGKILL)
