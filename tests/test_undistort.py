@@ -418,8 +418,8 @@ def test_colmap_model_nimbus_cannot_undistort_is_refused_with_the_fix(tmp_path, 
 
 
 @pytest.mark.parametrize("keys, message", [
-    ({"k1": float("nan")}, "k1 must be finite"),
-    ({"k1": "strong"}, "k1 must be a number"),
+    ({"k1": float("nan")}, "field 'k1' must be a finite number"),
+    ({"k1": "strong"}, "field 'k1' must be a number"),
     ({"camera_model": "EQUIRECTANGULAR"}, "camera_model EQUIRECTANGULAR is not supported"),
     ({"camera_model": "OPENCV", "k4": 0.01}, "k4=0.01 with camera_model OPENCV"),
     ({"camera_model": "OPENCV_FISHEYE", "p1": 0.01}, "OPENCV_FISHEYE has no tangential distortion"),
