@@ -293,22 +293,25 @@ class NimbusGS(GaussianSplatting):
             pred = pred + layer.store.get(view_index)
         loss = stage_loss(pred, gt, c.lambda_dssim, self.train_masks[view_index])
         if self.use_csm:
-            if c.lambda_dcp > 0 and (self.stage == 1 or c.dcp_stage2):
-                mask = self.medium.surface_mask(self._rays_for(view_index), render) if c.dcp_surface_only else None
+            dcp_on = c.lambda_dcp > 0 and (self.stage == 1 or c.dcp_stage2)
+            prior_weight = 0.0
+            if self.prior_clean is not None:
+                prior_weight = c.lambda_dehaze * (1.0 if self.stage == 1 else c.prior_stage2)
+            # The pixels whose march ends at a surface in the box: computed once, for whichever term needs it.
+            surface = (self.medium.surface_mask(self._rays_for(view_index), render)
+                       if (dcp_on and c.dcp_surface_only) or (prior_weight > 0 and c.prior_surface_only) else None)
+            if dcp_on:
                 loss = loss + c.lambda_dcp * dcp_loss(parts["clean"], c.dcp_patch, c.dcp_temperature, c.dcp_form,
-                                                      mask)
+                                                      surface if c.dcp_surface_only else None)
             if c.lambda_tv > 0 and self.medium.field is not None:
                 loss = loss + c.lambda_tv * self.medium.field.tv()
-            if self.prior_clean is not None:
-                weight = c.lambda_dehaze * (1.0 if self.stage == 1 else c.prior_stage2)
-                mask = self.train_masks[view_index]
-                if weight > 0 and c.prior_surface_only:  # not on the sky, where the dark-channel prior is false
-                    surface = self.medium.surface_mask(self._rays_for(view_index), render)
-                    mask = surface if mask is None else surface & mask
-                    weight = weight if bool(mask.any()) else 0.0
-                if weight > 0:
-                    loss = loss + weight * stage_loss(parts["clean"], self.prior_clean[view_index], c.lambda_dssim,
-                                                      mask)
+            mask = self.train_masks[view_index]
+            if prior_weight > 0 and c.prior_surface_only:  # not on the sky, where the dark-channel prior is false
+                mask = surface if mask is None else surface & mask
+                prior_weight = prior_weight if bool(mask.any()) else 0.0
+            if prior_weight > 0:
+                loss = loss + prior_weight * stage_loss(parts["clean"], self.prior_clean[view_index], c.lambda_dssim,
+                                                        mask)
         return loss, pred.detach()
 
     def reweight_gradients(self, step: int, view_index: int, render: dict, pred: Tensor, gt: Tensor,
