@@ -54,26 +54,25 @@ def test_cuda_check_regenerates(issue17, tmp_path, capsys):
     same_files(out, TABLES / "cuda_check_small_fast")
 
 
+def _tables_regenerate(folder: str, tmp_path, capsys, *options: str) -> None:
+    """``nimbus-bench tables`` on a copy of ``tables/FOLDER/results.jsonl`` writes exactly the committed files."""
+    root = tmp_path / folder
+    root.mkdir()
+    shutil.copyfile(TABLES / folder / "results.jsonl", root / "results.jsonl")
+    out = tmp_path / "out"
+    assert run_cli(TOOL.run, ["tables", "--root", str(root), "--out", str(out), *options]) == 0
+    capsys.readouterr()
+    same_files(out, TABLES / folder)
+
+
 def test_default_tiny_tables_regenerate(tmp_path, capsys):
     """The README main job's tables (three scenes, seven settings, three seeds on the hazy ones, the ceiling)."""
-    root = tmp_path / "bench_runs"
-    root.mkdir()
-    shutil.copyfile(TABLES / "default_tiny" / "results.jsonl", root / "results.jsonl")
-    out = tmp_path / "out"
-    assert run_cli(TOOL.run, ["tables", "--root", str(root), "--out", str(out)]) == 0
-    capsys.readouterr()
-    same_files(out, TABLES / "default_tiny")
+    _tables_regenerate("default_tiny", tmp_path, capsys)
 
 
 def test_street_small_h_tables_regenerate(tmp_path, capsys):
     """NimbusGS with and without the dehazed-view prior against restore-3dgs on the small street, H (issue 34)."""
-    root = tmp_path / "street"
-    root.mkdir()
-    shutil.copyfile(TABLES / "street_small_H" / "results.jsonl", root / "results.jsonl")
-    out = tmp_path / "out"
-    assert run_cli(TOOL.run, ["tables", "--root", str(root), "--out", str(out), "--methods", "nimbus,restore-3dgs"]) == 0
-    capsys.readouterr()
-    same_files(out, TABLES / "street_small_H")
+    _tables_regenerate("street_small_H", tmp_path, capsys, "--methods", "nimbus,restore-3dgs")
 
 
 def test_validation_tiny_summaries_regenerate():
