@@ -437,6 +437,25 @@ def extra_sections(root: Path, images: ImageWriter, options: ReportOptions) -> t
 
 
 # --- provenance ---------------------------------------------------------------------------------
+def _scene_argument(record: dict, root: str) -> tuple[str, str]:
+    """(what ``--scenes`` takes, the size key) for a record: a built-in scene's name and ``size:<size>``; a
+    folder scene's path (the root's record of its source) and ``downscale:<N>`` (``tree`` for a dataset tree)."""
+    from benchmark.scene_sources import BUILTIN, TREE, load_source
+    from benchmark.store import record_data_name
+
+    source = load_source(root, record_data_name(record))
+    if source is None or source.kind == BUILTIN:
+        return record["scene"], f"size:{record.get('size')}"
+    return source.path, "tree" if source.kind == TREE else f"downscale:{source.downscale}"
+
+
+def _size_arguments(size: str) -> list[str]:
+    kind, _, value = size.partition(":")
+    if kind == "size":
+        return ["--size", value]
+    return ["--downscale", value] if kind == "downscale" and value != "1" else []
+
+
 def reproduce_commands(recs: Iterable[dict], root: str) -> list[str]:
     """``nimbus-bench run`` command lines that run exactly these cells (each one a full product of its lists).
 
@@ -444,20 +463,22 @@ def reproduce_commands(recs: Iterable[dict], root: str) -> list[str]:
     group, (scene, setting) pairs with the same (methods x seeds) are gathered, and scenes sharing their
     settings make one command.  A command runs the clean ceiling of its scenes and seeds unless told
     ``--no-ceiling``, which it is where those ceiling cells are not all in ``recs``; a ceiling cell whose
-    scene, preset and seed have no weather cell is not reproduced (no command runs a ceiling alone).
+    scene, preset and seed have no weather cell is not reproduced (no command runs a ceiling alone).  A folder
+    scene (a capture, a photo folder, a dataset tree) is named by its path, as ``--scenes`` took it.
     """
     groups: dict[tuple, dict[tuple[str, str], set[tuple[str, int]]]] = {}
     ceilings: set[tuple] = set()
     for r in recs:
-        key = (r.get("size"), r.get("preset"), tuple(sorted((r.get("overrides") or {}).items())),
-               r.get("ssim_protocol") or "3dgs", r.get("lpips_net") or "none")
+        scene, size = _scene_argument(r, root)
+        key = (size, r.get("preset"), tuple(sorted((r.get("overrides") or {}).items())),
+               r.get("ssim_protocol") or "3dgs", r.get("lpips_net") or "none", r.get("eval_protocol") or "default")
         if r["weather"] == CEILING:
-            ceilings.add((key, r["scene"], int(r["seed"])))
+            ceilings.add((key, scene, int(r["seed"])))
             continue
-        groups.setdefault(key, {}).setdefault((r["scene"], r["weather"]), set()).add((r["method"], int(r["seed"])))
+        groups.setdefault(key, {}).setdefault((scene, r["weather"]), set()).add((r["method"], int(r["seed"])))
     lines = []
     for key, pairs in groups.items():
-        size, preset, overrides, ssim, lpips = key
+        size, preset, overrides, ssim, lpips, evaluation = key
         by_signature: dict[tuple, dict[str, list[str]]] = {}
         for (scene, weather), ms in pairs.items():
             methods = sorted({m for m, _ in ms})
@@ -473,10 +494,12 @@ def reproduce_commands(recs: Iterable[dict], root: str) -> list[str]:
             for scene, weathers in scenes.items():
                 by_weathers.setdefault(tuple(weathers), []).append(scene)
             for weathers, scene_list in by_weathers.items():
-                argv = ["nimbus-bench", "run", "--scenes", ",".join(scene_list), "--weathers", ",".join(weathers),
+                argv = ["nimbus-bench", "run", "--scenes", ",".join(dict.fromkeys(scene_list)), "--weathers", ",".join(weathers),
                         "--methods", ",".join(methods), "--preset", str(preset), "--seeds",
-                        ",".join(map(str, seeds)), "--size", str(size), "--ssim", ssim, "--lpips", lpips,
-                        "--root", root]
+                        ",".join(map(str, seeds)), *_size_arguments(size)]
+                argv += (["--protocol", evaluation] if evaluation != "default" else
+                         ["--ssim", ssim, "--lpips", lpips])
+                argv += ["--root", root]
                 for k, v in overrides:
                     argv += ["--set", f"{k}={v}"]
                 if not {(key, scene, seed) for scene in scene_list for seed in seeds} <= ceilings:

@@ -105,8 +105,8 @@ class SceneSource:
                    int(d.get("downscale", 1)), tuple(sorted(d.get("settings", {}).items())))
 
     def record_fields(self) -> dict:
-        """``scene_path`` and ``scene_hash`` as every record of this scene carries them."""
-        return {"scene_path": self.path, "scene_hash": self.scene_hash}
+        """``scene_path``, ``scene_hash`` and ``scene_kind`` as every record of this scene carries them."""
+        return {"scene_path": self.path, "scene_hash": self.scene_hash, "scene_kind": self.kind}
 
 
 # --- hashing --------------------------------------------------------------------------------
@@ -330,9 +330,9 @@ def register_sources(root: str | os.PathLike, sources: Sequence[SceneSource]) ->
 
 
 def builtin_fields(root: str | os.PathLike, data_name: str) -> dict:
-    """``scene_path`` / ``scene_hash`` of a rendered built-in scene (``ROOT/scenes/<data_name>``)."""
+    """``scene_path`` / ``scene_hash`` / ``scene_kind`` of a rendered built-in scene (``ROOT/scenes/<data_name>``)."""
     folder = (Path(root) / "scenes" / data_name).resolve()
-    return {"scene_path": str(folder), "scene_hash": scene_hash(folder) if folder.is_dir() else ""}
+    return {"scene_path": str(folder), "scene_hash": scene_hash(folder) if folder.is_dir() else "", "scene_kind": BUILTIN}
 
 
 # --- preparing the data ---------------------------------------------------------------------------

@@ -7,6 +7,7 @@ The data is the tiny built-in garden (16 views of 64x48) rendered by the grid's 
 
 from __future__ import annotations
 
+import html
 import json
 import os
 import shutil
@@ -17,6 +18,7 @@ import pytest
 from benchmark.cell import synthesize, write_clean_scene
 from benchmark.cli import TOOL
 from benchmark.grid import InlineExecutor
+from benchmark.html_report import reproduce_commands
 from benchmark.scene_sources import resolve_scenes, scene_hash, setting_from_folder
 from benchmark.store import ResultsStore, check_scene_hashes, load_results
 from nimbus.cli_util import run_cli
@@ -116,11 +118,19 @@ def test_an_authors_tree_runs_through_run_tables_and_report(data, tmp_path, caps
             assert v["psnr"] == pytest.approx(psnr(render, read_image(theirs / "clean" / v["name"])))
     assert _files(tree) == before  # nothing written into the user's folders
 
+    assert {r["scene_kind"] for r in recs} == {"tree"}
     assert run_cli(TOOL.run, ["tables", "--root", str(root), "--out", str(tmp_path / "tables")]) == 0
     table = (tmp_path / "tables" / "weather_H+R.md").read_text()
     assert "garden PSNR" in table and "garden-images" not in table
+    # The tree brought its own degraded images: the table does not claim our synthesis protocol made them.
+    assert "dataset tree(s) given to --scenes" in table and "Synthesis protocol: onerestore" not in table
     assert run_cli(TOOL.run, ["report", "--root", str(root), "--out", str(tmp_path / "report")]) == 0
-    assert "garden" in (tmp_path / "report" / "index.html").read_text()
+    page = (tmp_path / "report" / "index.html").read_text()
+    assert "garden" in page
+    # The report's command runs the tree again (its path, not the name of a built-in scene).
+    (command,) = reproduce_commands(recs, str(root))
+    assert f"--scenes {tree.resolve()} " in command and "--size" not in command
+    assert html.escape(command, quote=False) in page or html.escape(command) in page
     capsys.readouterr()
 
 
@@ -139,6 +149,9 @@ def test_a_scene_folder_is_degraded_under_the_root_and_scored_by_the_paper_proto
     assert rec["status"] == "ok", rec.get("error")
     assert (rec["scene"], rec["size"], rec["eval_protocol"]) == ("mygarden", "images", "paper")
     assert rec["scene_path"] == str(clean.resolve()) and rec["scene_hash"] == scene_hash(clean)
+    assert rec["scene_kind"] == "capture"
+    (command,) = reproduce_commands([rec], str(root))  # the folder and the paper protocol, as they were given
+    assert f"--scenes {clean.resolve()} " in command and "--protocol paper" in command and "--size" not in command
     assert rec["protocol"]["quantize_8bit"] is False
     # PSNR of the float render against the clean image, not of the 8-bit PNG the run saved.
     run = root / rec["run_dir"]

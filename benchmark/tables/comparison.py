@@ -66,6 +66,20 @@ def _table(weather: str, key: str, label: str, scenes: list[str], rows: list[Row
                  caption_lead=CAPTION_LEAD, wide=True, **kw)
 
 
+def synthesis_note(frame, protocol: str, summary: str) -> str:
+    """Who degraded a setting's images: the synthesiser (its protocol), or the dataset trees given to ``--scenes``
+    (their own images: no protocol of ours), or both, naming the trees' scenes."""
+    kinds = frame["scene_kind"] if "scene_kind" in frame else None
+    trees = [] if kinds is None else ordered(frame.loc[kinds == "tree", "scene_label"])
+    ours = f"Synthesis protocol: {protocol} ({summary})"
+    if not trees:
+        return ours
+    theirs = "degraded images of the dataset tree(s) given to --scenes, not made by nimbus-synth"
+    if len(trees) == frame["scene_label"].nunique():
+        return f"Weather: the {theirs}"
+    return f"{ours}; {', '.join(trees)}: the {theirs}"
+
+
 def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]]:
     """One table per weather setting of the store's finished cells (no layout is ever skipped).
 
@@ -103,7 +117,7 @@ def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]
         extra = ceiling.blocks(rows, presets, shown, scenes)
         caption = weather_caption(weather)
         protocol = parse_family_setting(weather).protocol
-        notes = [f"Synthesis protocol: {protocol} ({PROTOCOL_SUMMARIES[protocol]}); SSIM protocol: "
+        notes = [f"{synthesis_note(sub, protocol, PROTOCOL_SUMMARIES[protocol])}; SSIM protocol: "
                  f"{ssim_protocol}; LPIPS: {lp}; mean over seeds, Average = mean over scenes; {COMPARISON_OURS.note()}"]
         if extra:
             notes.append(ceiling.note())
