@@ -60,6 +60,29 @@ def test_dcp_inverts_a_known_constant_depth_haze():
     assert err_after < 0.03 and err_after < err_before / 5
 
 
+def test_the_sky_tolerance_keeps_a_bright_sky_from_going_dark():
+    # Rows 0..15: the haziest band (J = A, where the airlight is found); rows 16..47: a blue sky, bright in every
+    # channel (the dark-channel prior reads it as thick haze); below: a textured wall.  Same haze everywhere.
+    t, a = 0.45, np.array([0.8, 0.82, 0.85], np.float32)
+    clean = _texture()
+    clean[:16] = a
+    clean[16:48] = [0.62, 0.72, 0.9]
+    hazy = torch.from_numpy(_haze(clean, t, a))
+    sky, wall = (slice(24, 40), slice(None)), (slice(64, None), slice(None))
+
+    def err(cfg, where):
+        return float(np.abs(dehaze(hazy, cfg)[0].numpy() - clean)[where].mean())
+
+    off = RestoreConfig(median=1, patch=7, smooth=28, refine="guided", sky_tolerance=0.0)
+    on = RestoreConfig(median=1, patch=7, smooth=28, refine="guided")
+    assert on.sky_tolerance == 0.2  # the default, chosen on the validation views
+    assert err(off, sky) > 0.1  # without it, the sky is pushed far too dark
+    assert err(on, sky) < err(off, sky) / 2
+    assert err(on, wall) < err(off, wall) + 0.01  # the textured wall keeps its restoration
+    _, t_on, _ = dehaze(hazy, on)
+    assert float(t_on.max()) <= 1.0
+
+
 def test_classical_restore_keeps_the_box_refinement():
     # NimbusGS's ablation uses the box refinement; guided differs and is a separate choice.
     img = torch.from_numpy(_haze(_texture(48, 64)))
