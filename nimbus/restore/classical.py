@@ -55,7 +55,7 @@ class RestoreConfig:
     guided_eps: the guided filter's regulariser (He et al. 2013: 1e-3 for a [0, 1] guide);
     dehaze: run the dark-channel dehazing step; sky_tolerance: the sky tolerance ``K`` (module
     docstring; 0: off).  0.2 was chosen on the validation views (scene seeds 1 and 2, tiny and small,
-    the H folders: the single-image dehaze's PSNR against ``clean/``, ``docs/methods/restore-3dgs.md``)."""
+    the H folders: the single-image dehaze's PSNR against ``clean/``, ``docs/methods/baselines.md``)."""
 
     median: int = 3
     patch: int = 15
