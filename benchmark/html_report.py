@@ -437,13 +437,17 @@ def extra_sections(root: Path, images: ImageWriter, options: ReportOptions) -> t
 
 
 # --- provenance ---------------------------------------------------------------------------------
-def _scene_argument(record: dict, root: str) -> tuple[str, str]:
+def _scene_argument(record: dict, root: str, sources: dict) -> tuple[str, str]:
     """(what ``--scenes`` takes, the size key) for a record: a built-in scene's name and ``size:<size>``; a
-    folder scene's path (the root's record of its source) and ``downscale:<N>`` (``tree`` for a dataset tree)."""
+    folder scene's path (the root's record of its source, read once per scene into ``sources``) and
+    ``downscale:<N>`` (``tree`` for a dataset tree)."""
     from benchmark.scene_sources import BUILTIN, TREE, load_source
     from benchmark.store import record_data_name
 
-    source = load_source(root, record_data_name(record))
+    name = record_data_name(record)
+    if name not in sources:
+        sources[name] = load_source(root, name)
+    source = sources[name]
     if source is None or source.kind == BUILTIN:
         return record["scene"], f"size:{record.get('size')}"
     return source.path, "tree" if source.kind == TREE else f"downscale:{source.downscale}"
@@ -468,8 +472,9 @@ def reproduce_commands(recs: Iterable[dict], root: str) -> list[str]:
     """
     groups: dict[tuple, dict[tuple[str, str], set[tuple[str, int]]]] = {}
     ceilings: set[tuple] = set()
+    sources: dict = {}
     for r in recs:
-        scene, size = _scene_argument(r, root)
+        scene, size = _scene_argument(r, root, sources)
         key = (size, r.get("preset"), tuple(sorted((r.get("overrides") or {}).items())),
                r.get("ssim_protocol") or "3dgs", r.get("lpips_net") or "none", r.get("eval_protocol") or "default")
         if r["weather"] == CEILING:
@@ -494,8 +499,8 @@ def reproduce_commands(recs: Iterable[dict], root: str) -> list[str]:
             for scene, weathers in scenes.items():
                 by_weathers.setdefault(tuple(weathers), []).append(scene)
             for weathers, scene_list in by_weathers.items():
-                argv = ["nimbus-bench", "run", "--scenes", ",".join(dict.fromkeys(scene_list)), "--weathers", ",".join(weathers),
-                        "--methods", ",".join(methods), "--preset", str(preset), "--seeds",
+                argv = ["nimbus-bench", "run", "--scenes", ",".join(dict.fromkeys(scene_list)),
+                        "--weathers", ",".join(weathers), "--methods", ",".join(methods), "--preset", str(preset), "--seeds",
                         ",".join(map(str, seeds)), *_size_arguments(size)]
                 argv += (["--protocol", evaluation] if evaluation != "default" else
                          ["--ssim", ssim, "--lpips", lpips])

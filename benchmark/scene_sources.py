@@ -332,7 +332,8 @@ def register_sources(root: str | os.PathLike, sources: Sequence[SceneSource]) ->
 def builtin_fields(root: str | os.PathLike, data_name: str) -> dict:
     """``scene_path`` / ``scene_hash`` / ``scene_kind`` of a rendered built-in scene (``ROOT/scenes/<data_name>``)."""
     folder = (Path(root) / "scenes" / data_name).resolve()
-    return {"scene_path": str(folder), "scene_hash": scene_hash(folder) if folder.is_dir() else "", "scene_kind": BUILTIN}
+    return {"scene_path": str(folder), "scene_hash": scene_hash(folder) if folder.is_dir() else "",
+            "scene_kind": BUILTIN}
 
 
 # --- preparing the data ---------------------------------------------------------------------------

@@ -117,7 +117,8 @@ class ResultRecord(Schema):
     scene_path: Optional[str] = Field(default=None, description="the scene folder the cell trained on")
     scene_hash: Optional[str] = Field(default=None, description="a hash of that scene's content")
     scene_kind: Optional[Literal["builtin", "capture", "photos", "tree"]] = Field(
-        default=None, description="what --scenes was given: a built-in scene, a capture, a photo folder, a dataset tree")
+        default=None,
+        description="what --scenes was given: a built-in scene, a capture, a photo folder, a dataset tree")
     eval_protocol: Optional[str] = Field(default=None, description="the evaluation protocol (default, paper)")
     versions: Optional[dict] = None
     protocol: Optional[dict] = None
