@@ -46,3 +46,47 @@ def test_gsplat_whose_extension_does_not_load_is_not_available(monkeypatch, load
         assert gsplat_backend.package_available() is expected
     finally:
         gsplat_backend.package_available.cache_clear()
+
+
+class _Finder:
+    """A meta-path finder for ``gsplat.cuda._backend`` whose import raises ``error`` (None: no such module)."""
+
+    def __init__(self, error):
+        self.error = error
+
+    def find_spec(self, name, path=None, target=None):
+        if name != "gsplat.cuda._backend" or self.error is None:
+            return None
+        import importlib.util
+
+        return importlib.util.spec_from_loader(name, self)
+
+    def create_module(self, spec):
+        return None
+
+    def exec_module(self, module):
+        raise self.error
+
+
+@pytest.mark.parametrize("error,expected", [
+    # what gsplat 1.5.3 raised on an H200 when twelve workers built its extension at once
+    (ImportError("/root/.cache/torch_extensions/gsplat_cuda/gsplat_cuda.so: cannot open shared object file"), False),
+    (ModuleNotFoundError("No module named 'jaxtyping'", name="jaxtyping"), False),  # the module's own import
+    (RuntimeError("Error building extension 'gsplat_cuda'"), False),
+    (None, True),  # no gsplat.cuda._backend at all: another layout, loaded at the first rasterization
+])
+def test_gsplat_whose_backend_module_fails_to_import_is_not_available(monkeypatch, error, expected):
+    fake = types.ModuleType("gsplat")
+    cuda = types.ModuleType("gsplat.cuda")
+    cuda.__path__ = []
+    fake.cuda = cuda
+    monkeypatch.setitem(sys.modules, "gsplat", fake)
+    monkeypatch.setitem(sys.modules, "gsplat.cuda", cuda)
+    monkeypatch.delitem(sys.modules, "gsplat.cuda._backend", raising=False)
+    monkeypatch.setattr(sys, "meta_path", [_Finder(error), *sys.meta_path])
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    gsplat_backend.package_available.cache_clear()
+    try:
+        assert gsplat_backend.package_available() is expected
+    finally:
+        gsplat_backend.package_available.cache_clear()

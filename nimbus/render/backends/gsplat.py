@@ -10,6 +10,7 @@ statistic is not accumulated into the caller's tensor.
 from __future__ import annotations
 
 import functools
+import importlib
 
 import torch
 
@@ -31,13 +32,16 @@ def package_available() -> bool:
         import gsplat  # noqa: F401
     except Exception:
         return False
-    try:  # gsplat 1.x: the extension module, None when it cannot be built or loaded
-        from gsplat.cuda._backend import _C
-    except ImportError:  # another layout: the first rasterization will load it
-        return True
-    except Exception:  # noqa: BLE001 - a failed build raises whatever the compiler's wrapper raises
+    try:  # gsplat 1.x: the module that builds or loads the extension when imported
+        _backend = importlib.import_module("gsplat.cuda._backend")
+    except ModuleNotFoundError as e:
+        # No such module: another layout, whose first rasterization loads the extension.  A module
+        # that exists but cannot import (a dependency of it missing) is a failed load.
+        return bool(e.name) and "gsplat.cuda._backend".startswith(e.name)
+    except Exception:  # noqa: BLE001 - a failed build or load raises whatever the compiler's wrapper raises,
+        # ImportError for a built .so that is gone (seen when several processes built it at once)
         return False
-    return _C is not None
+    return getattr(_backend, "_C", True) is not None  # None: gsplat could not build or load it
 
 
 def rasterize(gaussians: Gaussians, viewmat, K, width, height, sh_degree, background, config, absgrad):
