@@ -15,6 +15,12 @@ Start-up
     first use (:func:`benchmark.cell.warm_up`) before its first cell, so that no cell's
     training time includes it and every cell starts from the same resident baseline.
 
+CUDA
+    On CUDA every worker loads gsplat's extension, which gsplat builds on first use.  Several
+    processes building it at once into the same folder removed each other's files (an H200 run of
+    12 workers: 11 cells failed).  So before a CUDA run of several workers one process loads (and,
+    the first time, builds) the extension alone (:func:`prebuild_extensions`), then the workers start.
+
 Isolation
     A cell that raises is recorded failed by ``train_cell`` / ``score_cell`` themselves.  A worker that dies (killed,
     out of memory, a crash in native code) loses only the cell it was running: that cell is
@@ -112,6 +118,26 @@ def serve(conn: Connection, parent: int | None = None) -> None:
             return
 
 
+def _load_extensions(options: CellOptions) -> None:
+    warm_up(options)
+
+
+def runs_on_cuda(options: CellOptions) -> bool:
+    """Whether the cells of ``options`` train on CUDA (its ``device``, else CUDA when torch sees a GPU)."""
+    import torch
+
+    if options.device:
+        return torch.device(options.device).type == "cuda"
+    return torch.cuda.is_available()
+
+
+def prebuild_extensions(ctx, options: CellOptions) -> None:
+    """Load (build, the first time) what a CUDA worker loads, in one process, before several workers start."""
+    process = ctx.Process(target=_load_extensions, args=(options,), name="nimbus-bench-prebuild")
+    process.start()
+    process.join()  # what failed here fails again in the workers, which fall back or record why
+
+
 class _Worker:
     """One spawned worker process, the pipe to it, and the cell it is running (None when idle)."""
 
@@ -178,6 +204,8 @@ class CellWorkers:
 
         ctx = multiprocessing.get_context("spawn")
         todo = list(cells)[::-1]  # taken from the end: table order
+        if self.jobs > 1 and len(todo) > 1 and runs_on_cuda(options):
+            prebuild_extensions(ctx, options)
         workers: list[_Worker] = []
         try:
             while True:

@@ -90,3 +90,29 @@ def test_gsplat_whose_backend_module_fails_to_import_is_not_available(monkeypatc
         assert gsplat_backend.package_available() is expected
     finally:
         gsplat_backend.package_available.cache_clear()
+
+
+class _Stop(Exception):
+    pass
+
+
+@pytest.mark.parametrize("device,jobs,n_cells,expected", [
+    ("cuda", 12, 12, ["prebuild", "worker"]),   # one process builds gsplat's extension before the workers start
+    ("cuda", 1, 12, ["worker"]),                 # one worker builds it alone anyway
+    ("cuda", 12, 1, ["worker"]),                 # so does the one worker of a one-cell run
+    ("cpu", 12, 12, ["worker"]),                 # the CPU kernels' build takes a lock of its own (nimbus.kernels)
+])
+def test_a_cuda_run_of_several_workers_builds_the_extension_once_first(monkeypatch, device, jobs, n_cells, expected):
+    from benchmark import workers
+
+    seen = []
+    monkeypatch.setattr(workers, "prebuild_extensions", lambda ctx, options: seen.append("prebuild"))
+
+    def worker(ctx):
+        seen.append("worker")
+        raise _Stop  # the order is all this test needs: no process starts
+
+    monkeypatch.setattr(workers, "_Worker", worker)
+    with pytest.raises(_Stop):
+        next(workers.CellWorkers(jobs).imap([object()] * n_cells, "root", CellOptions(device=device)))
+    assert seen == expected
