@@ -450,6 +450,15 @@ def scoring_lpips(options: CellOptions):
         return options.lpips_net
 
 
+def runs_on_cuda(options: CellOptions) -> bool:
+    """Whether the cells of ``options`` train on CUDA (its ``device``, else CUDA when torch sees a GPU)."""
+    import torch
+
+    from nimbus.methods.base import default_device
+
+    return (torch.device(options.device) if options.device else default_device()).type == "cuda"
+
+
 def warm_up(options: CellOptions) -> None:
     """Load now what every cell would load on first use: for a process about to train many cells.
 
@@ -464,12 +473,11 @@ def warm_up(options: CellOptions) -> None:
     if options.threads:
         torch.set_num_threads(int(options.threads))
     try:
-        from nimbus.methods.base import default_device
         from nimbus.methods.registry import get_method
 
         for name in ("3dgs", "nimbus", "restore-3dgs"):
             get_method(name).load()
-        if (torch.device(options.device) if options.device else default_device()).type == "cuda":
+        if runs_on_cuda(options):
             from nimbus.render.backends import gsplat
 
             gsplat.package_available()

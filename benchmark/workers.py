@@ -44,7 +44,8 @@ import time
 from multiprocessing.connection import Connection, wait
 from typing import Iterator, Sequence
 
-from benchmark.cell import Cell, CellOptions, error_record, score_cell, train_cell, utc_now, warm_up
+from benchmark.cell import (Cell, CellOptions, error_record, runs_on_cuda, score_cell, train_cell, utc_now,
+                            warm_up)
 from nimbus.utils.memory import reset_peak_rss
 
 
@@ -118,22 +119,9 @@ def serve(conn: Connection, parent: int | None = None) -> None:
             return
 
 
-def _load_extensions(options: CellOptions) -> None:
-    warm_up(options)
-
-
-def runs_on_cuda(options: CellOptions) -> bool:
-    """Whether the cells of ``options`` train on CUDA (its ``device``, else CUDA when torch sees a GPU)."""
-    import torch
-
-    if options.device:
-        return torch.device(options.device).type == "cuda"
-    return torch.cuda.is_available()
-
-
 def prebuild_extensions(ctx, options: CellOptions) -> None:
     """Load (build, the first time) what a CUDA worker loads, in one process, before several workers start."""
-    process = ctx.Process(target=_load_extensions, args=(options,), name="nimbus-bench-prebuild")
+    process = ctx.Process(target=warm_up, args=(options,), name="nimbus-bench-prebuild")
     process.start()
     process.join()  # what failed here fails again in the workers, which fall back or record why
 

@@ -30,23 +30,29 @@ def test_a_cpu_worker_loads_the_cpu_kernels(calls):
     assert calls == ["raster"]
 
 
-@pytest.mark.parametrize("loaded,expected", [(None, False), (object(), True)])
-def test_gsplat_whose_extension_does_not_load_is_not_available(monkeypatch, loaded, expected):
+@pytest.fixture
+def fake_gsplat(monkeypatch):
+    """An installed ``gsplat`` package with an empty ``gsplat.cuda``, and CUDA available; the cached answer cleared."""
     fake = types.ModuleType("gsplat")
     cuda = types.ModuleType("gsplat.cuda")
-    backend = types.ModuleType("gsplat.cuda._backend")
-    backend._C = loaded
-    fake.cuda, cuda._backend = cuda, backend
+    cuda.__path__ = []
+    fake.cuda = cuda
     monkeypatch.setitem(sys.modules, "gsplat", fake)
     monkeypatch.setitem(sys.modules, "gsplat.cuda", cuda)
-    monkeypatch.setitem(sys.modules, "gsplat.cuda._backend", backend)
+    monkeypatch.delitem(sys.modules, "gsplat.cuda._backend", raising=False)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     gsplat_backend.package_available.cache_clear()
-    try:
-        assert gsplat_backend.package_available() is expected
-    finally:
-        gsplat_backend.package_available.cache_clear()
+    yield cuda
+    gsplat_backend.package_available.cache_clear()
 
+
+@pytest.mark.parametrize("loaded,expected", [(None, False), (object(), True)])
+def test_gsplat_whose_extension_does_not_load_is_not_available(fake_gsplat, monkeypatch, loaded, expected):
+    backend = types.ModuleType("gsplat.cuda._backend")
+    backend._C = loaded
+    fake_gsplat._backend = backend
+    monkeypatch.setitem(sys.modules, "gsplat.cuda._backend", backend)
+    assert gsplat_backend.package_available() is expected
 
 class _Finder:
     """A meta-path finder for ``gsplat.cuda._backend`` whose import raises ``error`` (None: no such module)."""
@@ -75,22 +81,9 @@ class _Finder:
     (RuntimeError("Error building extension 'gsplat_cuda'"), False),
     (None, True),  # no gsplat.cuda._backend at all: another layout, loaded at the first rasterization
 ])
-def test_gsplat_whose_backend_module_fails_to_import_is_not_available(monkeypatch, error, expected):
-    fake = types.ModuleType("gsplat")
-    cuda = types.ModuleType("gsplat.cuda")
-    cuda.__path__ = []
-    fake.cuda = cuda
-    monkeypatch.setitem(sys.modules, "gsplat", fake)
-    monkeypatch.setitem(sys.modules, "gsplat.cuda", cuda)
-    monkeypatch.delitem(sys.modules, "gsplat.cuda._backend", raising=False)
+def test_gsplat_whose_backend_module_fails_to_import_is_not_available(fake_gsplat, monkeypatch, error, expected):
     monkeypatch.setattr(sys, "meta_path", [_Finder(error), *sys.meta_path])
-    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
-    gsplat_backend.package_available.cache_clear()
-    try:
-        assert gsplat_backend.package_available() is expected
-    finally:
-        gsplat_backend.package_available.cache_clear()
-
+    assert gsplat_backend.package_available() is expected
 
 class _Stop(Exception):
     pass
