@@ -5,7 +5,9 @@ backdrop (far hills, clouds, the end of a street), and 3DGS only grows Gaussians
 so a run from those points alone leaves the backdrop empty.  :func:`densify_points` adds, per
 training view, pixels sampled on a jittered grid, each unprojected with the view's camera at
 
-* the depth of the triangulated points projected near it (within ``radius`` of the image diagonal),
+* the depth a plane sweep measures for it in the view's posed neighbours (:mod:`nimbus.data.sweep`),
+  where it measures one (a textured patch whose colours match in one depth only);
+* otherwise the depth of the triangulated points projected near it (within ``radius`` of the image diagonal),
   when those agree (their depths within a factor ``1 + depth_tolerance``): a textureless patch
   next to measured ones;
 * otherwise, when no triangulated point projects near it, a far depth: ``far_factor`` times the
@@ -20,6 +22,7 @@ same views, points and seed give the same cloud.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Sequence
@@ -27,6 +30,7 @@ from typing import Sequence
 import numpy as np
 
 from nimbus.data.scene import View
+from nimbus.data.sweep import SweepConfig, sweep_depths
 from nimbus.errors import NimbusError
 
 
@@ -55,6 +59,13 @@ class DensifyConfig:
         The far depth is this many times that percentile (default 3).  On the built-in garden
         (docs/data.md, 10,000 pixels) 99 and 3 trained 0.46 dB better than 95 and 2, which put the backdrop at
         a seventh of the hills' depth.
+    sweep : bool
+        Measure each sample's depth by a plane sweep first (default True); the rules below it
+        apply where the sweep measures nothing.  On the validation garden and street (scene seed 1,
+        small), the swept depths of the samples were within 10 % of the true depth for 92 % and 84 %
+        of those near triangulated points (66 % and 79 % with their median), and recovered half of
+        those at depth edges.
+    sweep_config : SweepConfig
     seed : int
         Seed of the grid jitter.
     """
@@ -65,6 +76,8 @@ class DensifyConfig:
     depth_tolerance: float = 0.25
     far_percentile: float = 99.0
     far_factor: float = 3.0
+    sweep: bool = True
+    sweep_config: SweepConfig = SweepConfig()
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -107,7 +120,8 @@ def densify_points(views: Sequence[View], points: np.ndarray, colors: np.ndarray
         ``points`` first, then the M added samples.
     colors : ndarray, shape (N + M, 3), uint8
     info : dict
-        ``samples`` (M), ``near`` (taking nearby points' depth), ``far`` (at the far depth),
+        ``samples`` (M), ``swept`` (at a depth the plane sweep measured), ``near`` (taking nearby
+        points' depth), ``far`` (at the far depth),
         ``dropped`` (at a depth edge), and the settings.
     """
     pts = np.asarray(points, np.float64).reshape(-1, 3)
@@ -131,9 +145,13 @@ def densify_points(views: Sequence[View], points: np.ndarray, colors: np.ndarray
     if not len(all_depths):
         raise NimbusError("no training view sees a triangulated point in front of it; nothing to densify from")
     far_all = config.far_factor * float(np.percentile(all_depths, config.far_percentile))
+    # The swept range: half the nearest triangulated depth to ten times the far depth.
+    sweep_range = (0.5 * float(np.percentile(all_depths, 1)), 10.0 * far_all)
+    cameras = [v.camera for v in views]
+    images = [v.load_image() for v in views] if config.sweep else []
     out_pts, out_cols = [pts], [cols]
-    near_n = far_n = dropped = 0
-    for v, depths, count in zip(views, seen_depths, per_view):
+    swept_n = near_n = far_n = dropped = 0
+    for i, (v, depths, count) in enumerate(zip(views, seen_depths, per_view)):
         if count == 0:
             continue
         cam = v.camera
@@ -152,22 +170,31 @@ def densify_points(views: Sequence[View], points: np.ndarray, colors: np.ndarray
             zn = np.where(found, z_p[seen][np.minimum(idx, int(seen.sum()) - 1)], np.nan)
             with np.errstate(invalid="ignore", divide="ignore"):
                 agree = np.nanmax(zn[has_near], 1) <= (1 + config.depth_tolerance) * np.nanmin(zn[has_near], 1)
-            zmed = np.nanmedian(zn[has_near], 1)
-            z[np.flatnonzero(has_near)[agree]] = zmed[agree]
-            dropped += int((~agree).sum())
-            near_n += int(agree.sum())
-        z[~has_near] = far
-        far_n += int((~has_near).sum())
+            z[np.flatnonzero(has_near)[agree]] = np.nanmedian(zn[has_near], 1)[agree]
+        swept = np.zeros(len(uv_s), bool)
+        if config.sweep:
+            zs = sweep_depths(cameras, images, i, uv_s, *sweep_range, config=config.sweep_config)
+            swept = np.isfinite(zs)
+            z[swept] = zs[swept]
+        far_here = ~has_near & ~swept
+        z[far_here] = far
+        swept_n += int(swept.sum())
+        near_n += int((has_near & ~swept & np.isfinite(z)).sum())
+        dropped += int((has_near & ~swept & ~np.isfinite(z)).sum())
+        far_n += int(far_here.sum())
         keep = np.isfinite(z)
         uv_s, z = uv_s[keep], z[keep]
         rays = np.stack([(uv_s[:, 0] - cam.cx) / cam.fx, (uv_s[:, 1] - cam.cy) / cam.fy, np.ones(len(uv_s))], 1)
         cam_pts = rays * z[:, None]
         out_pts.append((cam_pts - cam.t) @ cam.R)  # x_c = R x_w + t
-        img = v.load_image()
+        img = images[i] if images else v.load_image()
         px = np.minimum(uv_s.astype(np.int64), [cam.width - 1, cam.height - 1])
         out_cols.append(np.clip(np.rint(img[px[:, 1], px[:, 0]] * 255), 0, 255).astype(np.uint8))
-    info = {"samples": near_n + far_n, "near": near_n, "far": far_n, "dropped": dropped,
-            "config": {k: getattr(config, k) for k in config.__dataclass_fields__}}
+    settings = {k: getattr(config, k) for k in config.__dataclass_fields__ if k != "sweep_config"}
+    if config.sweep:
+        settings["sweep_config"] = dataclasses.asdict(config.sweep_config)
+    info = {"samples": swept_n + near_n + far_n, "swept": swept_n, "near": near_n, "far": far_n, "dropped": dropped,
+            "config": settings}
     return np.concatenate(out_pts), np.concatenate(out_cols), info
 
 

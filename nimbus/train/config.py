@@ -48,8 +48,10 @@ class TrainConfig:
     ``init_random_points`` random points about the cameras' focus, or in their view frusta for a
     forward-facing capture (:mod:`nimbus.data.camera_focus`).  A scene with points starts from them.
     Triangulated points are densified with ``init_densify`` pixels of the training views, each at
-    the depth of the points projected near it or, where none is, at a far depth, so the backdrop
-    SIFT found nothing on gets Gaussians to grow from (:mod:`nimbus.data.densify`; 0 turns it off).
+    the depth a plane sweep over its neighbouring views measures (``init_sweep``,
+    :mod:`nimbus.data.sweep`), else at the depth of the points projected near it or, where none is,
+    at a far depth, so the backdrop SIFT found nothing on gets Gaussians to grow from
+    (:mod:`nimbus.data.densify`; 0 turns it off).
     """
 
     iterations: int = 30_000
@@ -89,6 +91,8 @@ class TrainConfig:
     init_triangulate: bool = True
     # triangulated points: add this many pixels of the training views (the backdrop included), 0: off
     init_densify: int = 30_000
+    # densified pixels: their depth measured by a plane sweep over neighbouring views where it can be
+    init_sweep: bool = True
     # training images: shrunk by this integer factor (test views stay full size)
     train_downscale: int = 1
     # rendering

@@ -110,10 +110,12 @@ def choose_init_points(scene: Scene, config, seed: int = 0, cache_dir: str | os.
             n_dense = int(getattr(config, "init_densify", 0))
             if n_dense > 0:
                 points, colors, dense = densify_points(views, tri.points, tri.colors,
-                                                       DensifyConfig(samples=n_dense, seed=seed))
+                                                       DensifyConfig(samples=n_dense, seed=seed,
+                                                                     sweep=bool(getattr(config, "init_sweep", True))))
                 record = {**record, "points": int(len(points)), "densify": dense}
-                line += (f"; densified with {dense['samples']} pixels of the training views ({dense['near']} at the "
-                         f"depth of nearby points, {dense['far']} on the backdrop; init_densify={n_dense})")
+                line += (f"; densified with {dense['samples']} pixels of the training views ({dense['swept']} at a "
+                         f"depth measured by a plane sweep, {dense['near']} at the depth of nearby points, "
+                         f"{dense['far']} on the backdrop; init_densify={n_dense})")
             log.warning("%s", line)
             return InitPoints(dataclasses.replace(scene, points=points, colors=colors), record, line)
         why = (f"triangulation found {len(tri.points)} points in {len(views)} posed training views "
