@@ -201,3 +201,36 @@ def test_a_bad_scene_is_one_clear_error(scenes, message, tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith("error:") and message in err and "Traceback" not in err
     assert not (tmp_path / "r").exists()
+
+
+def test_a_photo_folder_runs_through_sfm_degrade_train_score_and_tables(tmp_path, capsys):
+    """Photos only (no poses): ``nimbus-bench run --scenes PHOTOS`` poses them by SfM under the root, degrades the
+    posed scene, trains, scores against its clean images and tables it; the photo folder is not written."""
+    from nimbus.data.builtin import get_scene
+    from nimbus.data.builtin.raycast import RenderSettings, render_view
+    from nimbus.data.images import write_image
+
+    photos = tmp_path / "myphotos"
+    config = get_scene("garden").config
+    world = config.world(0)
+    # 14 neighbouring views of the 40-view orbit (9 degrees apart) at 240 x 180: SIFT needs this size and overlap.
+    for i, cam in enumerate(config.cameras(40, 240, 180, 0)[:14]):
+        write_image(photos / f"{i:03d}.png", render_view(world, cam, RenderSettings(samples_per_axis=1)).image)
+    before = _files(photos)
+    root = tmp_path / "root"
+    argv = RUN + ["--scenes", str(photos), "--weathers", "H", "--no-ceiling", "--root", str(root)]
+    assert run_cli(TOOL.run, argv) == 0, capsys.readouterr().err
+    _, err = capsys.readouterr()
+    assert "has no poses: running SfM" in err and "sfm: registered" in err
+    (rec,) = ResultsStore(root).records()
+    assert rec["status"] == "ok", rec.get("error")
+    assert rec["scene"] == "myphotos" and rec["scene_kind"] == "photos" and rec["scene_path"] == str(photos.resolve())
+    assert np.isfinite(rec["psnr"]) and rec["per_view"] and rec["ground_truth"].startswith("clean/")
+    assert _files(photos) == before  # posed and degraded under the root only
+    assert [p.name for p in (root / "sfm").iterdir()] == [f"myphotos-{rec['scene_hash'][:12]}"]
+    # A second run reuses the SfM and the cell.
+    assert run_cli(TOOL.run, argv) == 0
+    assert "running SfM" not in capsys.readouterr().err
+    assert run_cli(TOOL.run, ["tables", "--root", str(root), "--out", str(tmp_path / "tables")]) == 0
+    assert "myphotos PSNR" in (tmp_path / "tables" / "weather_H.md").read_text()
+    capsys.readouterr()

@@ -162,6 +162,17 @@ def test_culling_and_adaptive_sampling_match_the_reference(name):
     assert np.abs(fast.image - ref.image).mean() < 0.01
 
 
+def test_one_sample_per_pixel_renders_the_centre_ray():
+    """samples_per_axis=1 with adaptive sampling on: no other sample to refine with, so it is the reference."""
+    cfg = get_scene("garden").config
+    cam = cfg.cameras(16, 48, 36, 0)[5]
+    world = cfg.world(0)
+    fast = render_view(world, cam, RenderSettings(1))
+    ref = render_view(world, cam, RenderSettings(1, adaptive_threshold=None, cull=False))
+    np.testing.assert_array_equal(fast.image, ref.image)
+    np.testing.assert_array_equal(fast.depth, ref.depth)
+
+
 def test_noise_is_smooth_seeded_and_in_range():
     rng = np.random.default_rng(0)
     x = (rng.random((5000, 3)) * 40 - 20).astype(np.float32)

@@ -611,8 +611,8 @@ def render_view(world: World, camera: Camera, settings: RenderSettings = RenderS
         image = shade_samples([centre], None)[0].reshape(H, W, 3)
         edge = np.any(idx[:n_color] != idx[centre], axis=0)
         flagged = np.flatnonzero(edge | (_contrast(image) > settings.adaptive_threshold))
-        if len(flagged):
-            others = [k for k in range(n_color) if k != centre]
+        others = [k for k in range(n_color) if k != centre]
+        if len(flagged) and others:  # one sample per pixel: the centre is all there is
             total = shade_samples(others, flagged).sum(axis=0)
             if centre < n_color:  # the centre ray is one of the grid samples: reuse its colour
                 total += image.reshape(-1, 3)[flagged]
