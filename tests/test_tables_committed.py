@@ -95,7 +95,7 @@ def test_validation_tiny_summaries_regenerate():
     assert checked >= 4
 
 
-@pytest.mark.parametrize("folder", ["small_H", "small_H_before_sky", "small_HRS", "small_HS"])
+@pytest.mark.parametrize("folder", ["small_H", "small_H_before_sky", "small_HRS", "small_HS", "small_HR"])
 def test_small_h_tables_regenerate(folder, tmp_path, capsys):
     """NimbusGS against restore-3dgs on the small scenes under H (with and before the dehaze's sky tolerance) and
     under H+R+S and H+S (issue 34)."""
