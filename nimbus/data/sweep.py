@@ -92,14 +92,11 @@ def _sample(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Bilinear colours (..., 3) of ``image`` at Nimbus pixel positions ``uv`` (..., 2) (pixel centres at +0.5)."""
     shape = uv.shape[:-1]
     flat = uv.reshape(-1, 2).astype(np.float32) - np.float32(0.5)
-    out = np.empty((0, 3), np.float32)
-    rows = []
     # cv2.remap takes maps of fewer than 32767 rows and columns.
-    for s in range(0, len(flat), 32_000):
-        part = flat[s:s + 32_000]
-        rows.append(cv2.remap(image, part[:, None, 0].copy(), part[:, None, 1].copy(), cv2.INTER_LINEAR,
-                              borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3))
-    out = np.concatenate(rows) if rows else out
+    rows = [cv2.remap(image, flat[s:s + 32_000, None, 0].copy(), flat[s:s + 32_000, None, 1].copy(),
+                      cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3)
+            for s in range(0, len(flat), 32_000)]
+    out = np.concatenate(rows) if rows else np.empty((0, 3), np.float32)
     return out.reshape(*shape, 3)
 
 
