@@ -12,7 +12,10 @@ A benchmark root holds::
 
 Each cell trains its method on the degraded images and is scored with
 :mod:`benchmark.metrics` against the *clean* test views (``clean/``): the trainer's own
-PSNR compares with the degraded inputs, which is not the benchmark's question.  A cell
+PSNR compares with the degraded inputs, which is not the benchmark's question.  A weather cell's
+record also holds the degraded input's own score (``input_psnr`` / ``input_ssim`` / ``input_lpips``,
+:func:`score_input`): its degraded test views against the same clean ones, scored alike, which is
+what the reconstruction has to beat.  A cell
 trains into ``runs/<cell-id>.partial`` and is renamed into place before it is scored, so a
 killed run leaves no half-written run passing for a finished one.  A rerun continues an
 interrupted cell from the last checkpoint in its ``.partial`` folder when that folder is this
@@ -75,6 +78,8 @@ CELL_FORMAT = "nimbus-bench-cell/1"
 TRAINED = "trained"
 #: Parameters per Gaussian besides its SH colour: mean 3 + quaternion 4 + log-scale 3 + opacity 1.
 GEOMETRY_PARAMS = 11
+#: Record fields of the degraded input's own score (:func:`score_input`), by metric; weather cells only.
+INPUT_FIELDS = {"psnr": "input_psnr", "ssim": "input_ssim", "lpips": "input_lpips"}
 
 
 # --- cells -------------------------------------------------------------------------------
@@ -531,6 +536,24 @@ def score_run(run: Path, data: Path, results: dict, *, ssim_protocol: str, lpips
                              ssim_protocol=ssim_protocol, lpips_net=lpips_net, device=device, quantize=quantize)
 
 
+def score_input(data: Path, split: str, *, ssim_protocol: str, lpips_net, device: str | None) -> dict:
+    """Score a setting's degraded ``split`` views themselves against its clean ones, as a cell's renders are scored.
+
+    What a reconstruction has to beat: the images the weather left (``data/images/``, what the synthesiser wrote)
+    scored by :func:`benchmark.score.score_renders` exactly as :func:`score_run` scores a run's renders: the
+    same ground truth (``clean/``), views, validity masks, SSIM protocol and LPIPS network.  The inputs are 8-bit
+    image files, which the 8-bit round trip leaves as they are, so this one score serves both evaluation protocols
+    (a 16-bit input of a dataset tree is scored through the round trip).  Returns ``score_renders``'s dict.
+    """
+    from benchmark.score import score_renders
+    from weather_synth.dataset import IMAGE_DIR
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        return score_renders(Path(data) / IMAGE_DIR, data, split=split, ssim_protocol=ssim_protocol,
+                             lpips_net=lpips_net, device=device, quantize=True)
+
+
 # --- one cell ----------------------------------------------------------------------------------
 def utc_now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="seconds")
@@ -575,6 +598,8 @@ def run_cell(cell: dict | Cell, root: str, options: CellOptions | None = None) -
         and ``per_view`` values; ``ssim_protocol``, ``lpips_net``, ``notes``;
         ``psnr_vs_input`` / ``ssim_vs_input`` (the trainer's own score, when it was against the
         degraded views; None when the data has ``clean/``, which the trainer then scores against);
+        ``input_psnr`` / ``input_ssim`` / ``input_lpips`` (a weather cell's degraded test views themselves against
+        the clean ones, :func:`score_input`: the score without any reconstruction; none for a clean-ceiling cell);
         ``train_time_s``, ``peak_memory_mb`` (of the process that trained; of its last attempt for a cell
         resumed after an interruption, whose record has ``resumed_from_iteration``), ``num_gaussians``,
         ``num_params`` (+ ``num_params_source``), ``render_fps``, ``iterations``;
@@ -675,13 +700,16 @@ def _score_cell(record: dict, root: Path, options: CellOptions) -> dict:
     from nimbus.utils.fs import sha256_file
 
     record_data_name(record)  # the record's fields name folders: they must stay in the root
-    data = data_dir(root, Cell.from_dict(record))
+    cell = Cell.from_dict(record)
+    data = data_dir(root, cell)
     final = record_run_dir(root, record)
     results = json.loads((final / "results.json").read_text())
-    score = score_run(final, data, results, ssim_protocol=options.ssim_protocol, lpips_net=scoring_lpips(options),
+    lpips = scoring_lpips(options)
+    score = score_run(final, data, results, ssim_protocol=options.ssim_protocol, lpips_net=lpips,
                       device=options.device, quantize=options.quantize)
     per_view = [{k: v[k] for k in ("name", "psnr", "ssim", "lpips")} for v in score["per_view"]]
     return {
+        **_input_fields(cell, data, results.get("eval_split", "test"), options, lpips),
         "psnr": score["mean"]["psnr"], "ssim": score["mean"]["ssim"], "lpips": score["mean"]["lpips"],
         "per_view": per_view, "ssim_protocol": options.ssim_protocol, "lpips_net": options.lpips_net,
         "protocol": score["protocol"], "eval_protocol": options.eval_protocol, "notes": score["notes"], "setup_command": score.get("setup_command"),
@@ -689,6 +717,17 @@ def _score_cell(record: dict, root: Path, options: CellOptions) -> dict:
         "input_sha256": sha256_file(data_manifest(data)),
         "output_sha256": {v["name"]: v["pred_sha256"] for v in score["per_view"]},
     }
+
+
+def _input_fields(cell: Cell, data: Path, split: str, options: CellOptions, lpips) -> dict:
+    """:data:`INPUT_FIELDS` of a weather cell's record (:func:`score_input`); none for a clean-ceiling cell, which
+    has no degraded input, nor for data without ``clean/`` views to score it against."""
+    from benchmark.score import CLEAN_DIR
+
+    if cell.is_ceiling or not (data / CLEAN_DIR).is_dir():
+        return {}
+    score = score_input(data, split, ssim_protocol=options.ssim_protocol, lpips_net=lpips, device=options.device)
+    return {field: score["mean"][k] for k, field in INPUT_FIELDS.items()}
 
 
 def _param_count(model, results: dict, config) -> tuple[int | None, str]:

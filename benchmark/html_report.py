@@ -10,9 +10,11 @@ Sections:
 
 * **Summary**: per weather setting x method, the mean PSNR / SSIM / LPIPS / training time over the
   finished cells (every scene and seed, as ``nimbus-bench run`` prints it), with cell and error
-  counts; best and second best marked per setting; sortable by clicking a column head.  With
-  clean-ceiling cells (:mod:`benchmark.tables.ceiling`) the ceiling is the first block and a
-  ``ΔPSNR vs clean`` column gives each row's gap to it.
+  counts; best and second best marked per setting; sortable by clicking a column head.  Where the
+  records carry the degraded input's own score (:mod:`benchmark.tables.inputs`) an ``Input PSNR`` column
+  gives each row the PSNR of the degraded test views themselves.  With clean-ceiling cells
+  (:mod:`benchmark.tables.ceiling`) the ceiling is the first block and a ``ΔPSNR vs clean`` column gives
+  each row's gap to it.
 * **Test views**: per scene and setting, a few test views (:attr:`ReportOptions.views`, evenly
   spaced over the split): the degraded input, each cell's render (the clean ceiling's too), the
   clean view, each captioned with its PSNR against the clean view (the record's per-view value where

@@ -65,9 +65,9 @@ LOCK_DIR = "locks"
 #: Columns of :func:`load_results` taken from each record as is (the rest stay in ``record``).
 SCALAR_COLUMNS = (
     "cell_id", "scene", "size", "weather", "method", "preset", "seed", "status", "error",
-    "psnr", "ssim", "lpips", "ssim_protocol", "lpips_net", "train_time_s", "peak_memory_mb",
-    "num_gaussians", "num_params", "render_fps", "iterations", "config_hash", "input_sha256",
-    "started_at", "finished_at", "scene_path", "scene_hash", "scene_kind",
+    "psnr", "ssim", "lpips", "input_psnr", "input_ssim", "input_lpips", "ssim_protocol", "lpips_net",
+    "train_time_s", "peak_memory_mb", "num_gaussians", "num_params", "render_fps", "iterations", "config_hash",
+    "input_sha256", "started_at", "finished_at", "scene_path", "scene_hash", "scene_kind",
 )
 #: Bad lines of a store warned about one by one; past this many, one warning counts the rest.
 MAX_WARNED_LINES = 10

@@ -97,6 +97,11 @@ class ResultRecord(Schema):
     lpips: Measure = Field(default=None, description="mean LPIPS (lpips_net)")
     psnr_vs_input: Measure = None
     ssim_vs_input: Measure = None
+    # The degraded test views themselves against the clean ones, scored alike (weather cells; absent in old records).
+    input_psnr: Measure = Field(default=None, description="mean PSNR (dB) of the degraded test views themselves "
+                                "against the clean ones (no reconstruction); weather cells only")
+    input_ssim: Measure = Field(default=None, description="mean SSIM of the degraded test views (ssim_protocol)")
+    input_lpips: Measure = Field(default=None, description="mean LPIPS of the degraded test views (lpips_net)")
     ssim_protocol: Optional[str] = None
     lpips_net: Optional[str] = None
     per_view: Optional[list[PerViewScore]] = Field(default=None, description="each test view's scores")

@@ -116,6 +116,10 @@ def test_an_authors_tree_runs_through_run_tables_and_report(data, tmp_path, caps
         for v in r["per_view"]:
             render = read_image(root / r["run_dir"] / "renders" / "test" / v["name"])
             assert v["psnr"] == pytest.approx(psnr(render, read_image(theirs / "clean" / v["name"])))
+        # Its input's own score: the tree's degraded test views against its clean ones.
+        assert r["input_psnr"] == pytest.approx(np.mean([psnr(read_image(theirs / "images" / v["name"]),
+                                                              read_image(theirs / "clean" / v["name"]))
+                                                         for v in r["per_view"]]))
     assert _files(tree) == before  # nothing written into the user's folders
 
     assert {r["scene_kind"] for r in recs} == {"tree"}
@@ -163,6 +167,11 @@ def test_a_scene_folder_is_degraded_under_the_root_and_scored_by_the_paper_proto
         assert v["psnr"] == pytest.approx(psnr(pred, gt, quantize=False), abs=1e-9)
         rounded.append(psnr(read_image(run / "renders" / "test" / v["name"]), gt))
     assert [v["psnr"] for v in rec["per_view"]] != pytest.approx(rounded, abs=1e-6)
+    # The degraded input is an 8-bit PNG: scored without rounding, it scores as the default protocol scores it.
+    data = root / "data" / "mygarden" / "H"
+    assert rec["input_psnr"] == pytest.approx(np.mean([psnr(read_image(data / "images" / v["name"]),
+                                                            read_image(data / "clean" / v["name"]), quantize=False)
+                                                       for v in rec["per_view"]]), abs=1e-9)
     # A root keeps one protocol: the same grid scored the default way is refused.
     assert run_cli(TOOL.run, [a for a in argv if a not in ("--protocol", "paper")]) == 2
     assert "--protocol paper" in capsys.readouterr().err

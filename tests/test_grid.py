@@ -174,6 +174,49 @@ def test_local_run_records_and_scores_against_clean_views(finished):
         assert not list((root / "runs").glob("*.partial"))
 
 
+def _input_score(data, names, lpips_net=None) -> dict:
+    """The degraded test views against the clean ones, scored here with benchmark.metrics on the files."""
+    from benchmark.metrics import score_images
+
+    return score_images([read_image(data / "images" / n) for n in names],
+                        [read_image(data / "clean" / n) for n in names], ssim_protocol="3dgs",
+                        lpips_net=lpips_net, names=names)["mean"]
+
+
+def test_a_weather_cell_records_its_degraded_inputs_own_score(finished):
+    """input_psnr / input_ssim / input_lpips: the cell's degraded test views themselves, scored as its renders are."""
+    root, _ = finished
+    for rec in load_results(root)["record"]:
+        c = next(c for c in cells() if c.cell_id == rec["cell_id"])
+        data = data_dir(root, c)
+        names = [v["name"] for v in rec["per_view"]]  # the cell's test views, no training view
+        expected = _input_score(data, names)
+        assert rec["input_psnr"] == pytest.approx(expected["psnr"], rel=1e-6)
+        assert rec["input_ssim"] == pytest.approx(expected["ssim"], rel=1e-6)
+        assert rec["input_lpips"] is None  # the grid was run without LPIPS, like the renders
+        # The weather is in the input (below a perfect score), and it is no render's score.
+        assert 0 < rec["input_psnr"] < 60 and rec["input_ssim"] < 1
+        assert rec["input_psnr"] != pytest.approx(rec["psnr"])
+    h = next(r for r in load_results(root)["record"] if r["weather"] == "H")
+    r = next(r for r in load_results(root)["record"] if r["weather"] == "R")
+    assert h["input_psnr"] != pytest.approx(r["input_psnr"])  # each setting its own input
+
+
+def test_the_input_score_takes_the_cells_lpips_network(finished):
+    """Rescored with LPIPS, a cell's input gets the same network's value as the one computed here on the files."""
+    from nimbus.metrics.lpips_weights import weights_path
+
+    if not weights_path("alex").is_file():
+        pytest.skip("LPIPS alex weights not set up; run `nimbus-bench setup-weights`")
+    root, _ = finished
+    rec = next(r for r in ResultsStore(root).records() if r["weather"] == "H")
+    scored = cell.score_cell({**rec, "status": cell.TRAINED}, str(root), CellOptions(lpips_net="alex"))
+    assert scored["status"] == "ok", scored.get("error")
+    expected = _input_score(data_dir(root, cell.Cell.from_dict(rec)), [v["name"] for v in rec["per_view"]], "alex")
+    assert scored["input_lpips"] == pytest.approx(expected["lpips"], rel=1e-5) and scored["input_lpips"] > 0
+    assert scored["input_psnr"] == pytest.approx(rec["input_psnr"])  # the rest as before
+
+
 def test_a_reused_worker_gives_a_cell_the_figures_of_a_fresh_one(finished, tmp_path):
     """Nothing leaks from one cell to the next in a worker: the same renders and scores as a first cell."""
     root, outcome = finished
@@ -457,9 +500,14 @@ def test_cli_resumes_and_prints_the_table(finished, capsys):
     assert "skipping 2 finished cell(s)" in err and "clean-ceiling" not in err
     assert (root / "results.jsonl").read_bytes() == before  # --no-ceiling: nothing left to train
     lines = out.splitlines()
-    assert lines[0].split() == ["Weather", "Method", "PSNR↑", "SSIM↑", "LPIPS↓", "Train", "s↓", "Cells", "Errors"]
+    assert lines[0].split() == ["Weather", "Method", "PSNR↑", "SSIM↑", "LPIPS↓", "Train", "s↓", "Cells", "Errors",
+                                "Input", "PSNR"]
     assert lines[1].split()[:2] == ["H", "3dgs"] and lines[2].split()[:2] == ["R", "3dgs"]
-    assert lines[1].split()[-2:] == lines[2].split()[-2:] == ["1", "0"]  # one cell each, no error
+    assert lines[1].split()[-3:-1] == lines[2].split()[-3:-1] == ["1", "0"]  # one cell each, no error
+    # Each setting's degraded input, scored alike: what the line's cells have to beat.
+    records = {r["weather"]: r for r in ResultsStore(root).records()}
+    assert [line.split()[-1] for line in lines[1:3]] == [f"{records[w]['input_psnr']:.2f}" for w in "HR"]
+    assert "Input PSNR = the degraded test views' own PSNR" in out
     assert "SSIM protocol: 3dgs" in out and "ceiling" not in out and "ΔPSNR" not in out
     assert not any(line.startswith(CEILING) for line in lines)
 
@@ -481,6 +529,7 @@ def test_cli_trains_the_clean_ceiling_once_on_the_clean_views(finished, tmp_path
         (CEILING, "3dgs", "tiny", 0, "tiny")
     assert ceiling["cell_id"] == cells()[0].cell_id.replace("_H_", "_clean_")
     assert ceiling["config"]["iterations"] == 5  # the grid's --set
+    assert not {"input_psnr", "input_ssim", "input_lpips"} & ceiling.keys()  # no degraded input of its own
     # It trained on the clean scene: its input is the clean scene's manifest, its run read that folder.
     clean = root / "scenes" / "garden-tiny"
     assert ceiling["input_sha256"] == sha256_file(clean / "manifest.json")
@@ -498,7 +547,8 @@ def test_cli_trains_the_clean_ceiling_once_on_the_clean_views(finished, tmp_path
     lines = out.splitlines()
     assert lines[0].split()[-3:] == ["ΔPSNR", "vs", "clean"]
     first = lines[1].split()
-    assert first[:5] == [CEILING, "3DGS", "(clean", "views)", f"{ceiling['psnr']:.2f}"] and first[-3:] == ["1", "0", "n/a"]
+    assert first[:5] == [CEILING, "3DGS", "(clean", "views)", f"{ceiling['psnr']:.2f}"]
+    assert first[-4:] == ["1", "0", "n/a", "n/a"]  # neither an input nor a gap of its own
     for line, rec in zip(lines[2:4], weather):
         assert line.split()[0] == rec["weather"]
         assert float(line.split()[-1]) == pytest.approx(rec["psnr"] - ceiling["psnr"], abs=0.005)

@@ -110,7 +110,7 @@ def test_every_referenced_file_exists_and_the_page_has_every_section(store, repo
 
 
 def test_summary_numbers_equal_the_store(store, report):
-    *_, parser = report
+    _, page, parser = report
     df = load_results(store)
     rows = {(r[0], r[1]): r for r in parser.summary if r}
     assert set(rows) == {("H", "nimbus"), ("H", "3dgs")}
@@ -121,7 +121,9 @@ def test_summary_numbers_equal_the_store(store, report):
         assert cells[3] == f"{g['ssim'].mean():.3f}"
         assert cells[4] == "–"  # LPIPS not computed
         assert cells[5] == f"{g['train_time_s'].mean():.1f}"
-        assert cells[6:] == ["1", "0"]
+        assert cells[6:8] == ["1", "0"]
+        assert cells[8] == f"{g['input_psnr'].mean():.2f}"  # the degraded input's own PSNR: what the row has to beat
+    assert "Input PSNR = the degraded test views" in page.read_text(encoding="utf-8")  # the note under it
 
 
 def test_per_view_captions_are_the_records_psnr(store, report):
@@ -211,7 +213,7 @@ def test_the_report_shows_the_clean_ceiling(store, tmp_path):
     parser.feed(page.read_text(encoding="utf-8"))
     rows = [r for r in parser.summary if r]
     assert [r[:2] for r in rows] == [["clean", "3DGS (clean views)"], ["H", "nimbus"], ["H", "3dgs"]]
-    assert rows[0][-1] == "–"  # no gap of its own
+    assert rows[0][-2:] == ["–", "–"]  # neither a degraded input nor a gap of its own
     records = {r["method"]: r for r in ResultsStore(root).records() if r["weather"] == "H"}
     for row in rows[1:]:
         assert row[-1] == f"{records[row[1]]['psnr'] - rec['psnr']:.2f}"

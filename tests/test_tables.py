@@ -10,7 +10,7 @@ import pytest
 
 from benchmark.cli import TOOL
 from benchmark.store import ResultsStore, load_results
-from benchmark.tables import ceiling
+from benchmark.tables import ceiling, inputs
 from benchmark.tables.comparison import tables as comparison_tables
 from benchmark.tables.margins import tables as margins_tables
 from benchmark.tables.model import rank_marks
@@ -57,6 +57,19 @@ def ceiling_records(values=CEILING_VALUES, preset="tiny"):
              "weather": "clean", "method": "3dgs", "preset": preset, "seed": seed, "status": "ok", "psnr": p,
              "ssim": s, "lpips": lp, "ssim_protocol": "3dgs", "lpips_net": "vgg", "train_time_s": 1.0}
             for scene, seed, p, s, lp in values]
+
+
+#: The degraded input's own score per (weather, scene), as a weather cell's record carries it (input_psnr, ...).
+INPUT_VALUES = {("H", "garden"): (12.0, 0.40, 0.50), ("H", "street"): (14.0, 0.50, 0.46),
+                ("R", "garden"): (20.0, 0.75, 0.25), ("R", "street"): (19.0, 0.70, 0.30)}
+
+
+def input_records(seeds=(0,)):
+    """:func:`records` as cells that score their input write them; street in rain by one method only (3dgs)."""
+    return [dict(r, input_psnr=INPUT_VALUES[(r["weather"], r["scene"])][0] + r["seed"] * 0.5,
+                 input_ssim=INPUT_VALUES[(r["weather"], r["scene"])][1],
+                 input_lpips=INPUT_VALUES[(r["weather"], r["scene"])][2])
+            if r["status"] == "ok" else r for r in records(seeds=seeds)]
 
 
 @pytest.fixture
@@ -247,6 +260,67 @@ def test_no_ceiling_record_no_ceiling_row_and_no_word_of_it(tables, store_root):
         summary_text(load_results(store_root))
 
 
+def test_records_without_the_input_score_show_no_input_row_and_no_word_of_it(tables, store_root):
+    for t in tables.values():
+        text = to_markdown(t) + to_latex(t) + to_csv([t])
+        assert inputs.LABEL not in text and inputs.BLOCK not in text and "degraded input" not in text
+    assert "Input" not in summary_text(load_results(store_root))
+
+
+def test_the_degraded_input_row(tmp_path, tables):
+    """Its own unranked block under the methods: per scene the mean over the records carrying it, Average over
+    the table's scenes; the methods' rows and marks are untouched."""
+    store = ResultsStore(tmp_path)
+    for r in input_records(seeds=(0, 1)) + ceiling_records():
+        store.append(r)
+    got = {t.layout: t for t in comparison_tables(load_results(tmp_path), ["nimbus", "3dgs"])[0]}
+    h = got["H"]
+    assert [b.name for b in h.blocks] == ["trained on H", inputs.BLOCK, ceiling.CEILING_BLOCK, ceiling.GAP_BLOCK]
+    [row] = h.blocks[1].rows
+    assert row.label == inputs.LABEL == "degraded input (test views)"
+    # garden: every method and both seeds carry it (12.0 and 12.5): their mean; street alike (14.0, 14.5).
+    assert row.values[("garden", "psnr")] == pytest.approx(12.25)
+    assert row.values[("street", "ssim")] == pytest.approx(0.50)
+    assert row.values[("street", "lpips")] == pytest.approx(0.46)
+    assert row.values[("Average", "psnr")] == pytest.approx((12.25 + 14.25) / 2)
+    assert row.values[("Average", "lpips")] == pytest.approx((0.50 + 0.46) / 2)
+    assert all(m is None for g in h.groups for k in ("psnr", "ssim", "lpips") for m in h.marks(g, k, 1))
+    # The methods: the values of the table without the input (mean over two seeds: +0.5 PSNR), the same marks.
+    plain = tables["H"]
+    for mine, theirs in zip(h.blocks[0].rows, plain.blocks[0].rows):
+        assert mine.label == theirs.label and mine.values[("garden", "ssim")] == theirs.values[("garden", "ssim")]
+        assert mine.values[("garden", "psnr")] == pytest.approx(theirs.values[("garden", "psnr")] + 0.5)
+    assert all(h.marks(g, k) == plain.marks(g, k) for g in h.groups for k in ("psnr", "ssim", "lpips"))
+    # The ceiling block and the gaps still measure the methods against the ceiling, not against the input.
+    assert h.row(OURS, 3).values[("garden", "psnr")] == pytest.approx(21.5 - 30.5)
+    # Rain: street has a 3dgs cell only (nimbus misses it), whose record carries the input: a value and an Average.
+    r = got["R"].blocks[1].rows[0]
+    assert r.values[("street", "psnr")] == pytest.approx(19.25)
+    assert r.values[("Average", "ssim")] == pytest.approx(0.725)
+    # Markdown, LaTeX and the note show it by name, unmarked; the CSV keeps its measured lines.
+    md = to_markdown(h)
+    assert "| degraded input (test views) | no reconstruction | 12.25 | 0.400 | 0.500 | 14.25 | 0.500 | 0.460 |" in md
+    assert "degraded input (test views) = the setting's degraded test views themselves" in md
+    assert r"\multirow{1}{*}{no reconstruction}" in to_latex(h)
+    assert to_latex(h).count(r"irst{") == to_latex(plain).count(r"irst{")
+    lines = [x for x in csv.DictReader(io.StringIO(to_csv(list(got.values())))) if x["method"] == inputs.LABEL]
+    assert [(x["weather"], x["scene"]) for x in lines] == [(w, g) for w in "HR" for g in ("garden", "street",
+                                                                                               "Average")]
+    assert float(lines[0]["psnr"]) == pytest.approx(12.25) and all(x["psnr_mark"] == "" for x in lines)
+
+
+def test_the_input_row_of_a_scene_no_record_carries_is_empty(tmp_path):
+    """A scene whose records all predate the fields has no input value, and the Average none (never a partial one)."""
+    store = ResultsStore(tmp_path)
+    for r in input_records():
+        store.append(r if r["scene"] == "garden" else {k: v for k, v in r.items() if not k.startswith("input_")})
+    h = comparison_tables(load_results(tmp_path))[0][0]
+    row = h.row(inputs.LABEL, 1)
+    assert row.values[("garden", "psnr")] == pytest.approx(12.0) and row.values[("street", "psnr")] is None
+    assert row.values[("Average", "psnr")] is None
+    assert h.blocks[0].name == "trained on H" and len(h.blocks) == 2
+
+
 def test_a_method_meets_the_ceiling_of_its_own_preset(tmp_path):
     store = ResultsStore(tmp_path)
     fast = [dict(r, cell_id=r["cell_id"] + "-fast", preset="fast") for r in records()[:2]]  # nimbus, 3dgs garden H
@@ -373,6 +447,28 @@ def test_summary_gives_each_line_its_gap_to_the_ceiling(ceiling_root):
     assert float(rows[("R", "3dgs")]["ΔPSNR vs clean"]) == pytest.approx(((24 - 30.5) + (22 - 33)) / 2, abs=0.005)
     assert rows[("S", "3dgs")]["ΔPSNR vs clean"] == "n/a"  # an error cell: no PSNR, no gap
     assert "ΔPSNR vs clean = the mean over a row's finished cells of the cell's PSNR minus" in lines[-1]
+
+
+def test_summary_gives_each_line_its_inputs_psnr(tmp_path):
+    store = ResultsStore(tmp_path)
+    for r in input_records() + ceiling_records():
+        store.append(r)
+    lines = summary_text(load_results(tmp_path), ["nimbus", "3dgs"]).splitlines()
+    cols = [re.split(r"\s{2,}", line.strip()) for line in lines]
+    head = cols[0]
+    assert head[-2:] == ["Input PSNR", "ΔPSNR vs clean"]
+    rows = {tuple(c[:2]): dict(zip(head, c)) for c in cols[1:] if c[0] in ("clean", "H", "R", "S")}
+    assert rows[("clean", ceiling.LABEL)]["Input PSNR"] == "n/a"  # trained on the clean views: no degraded input
+    # The mean over the line's cells (garden and street): the same for every method of a setting and scene set.
+    assert rows[("H", "nimbus")]["Input PSNR"] == rows[("H", "3dgs")]["Input PSNR"] == "13.00"
+    assert rows[("R", "nimbus")]["Input PSNR"] == "20.00" and rows[("R", "3dgs")]["Input PSNR"] == "19.50"
+    assert rows[("S", "3dgs")]["Input PSNR"] == "n/a"  # an error cell: nothing scored
+    assert any(line.startswith("Input PSNR = the degraded test views' own PSNR") for line in lines)
+    # A line with a cell that lacks it (an older record) shows none rather than a mean over part of its scenes.
+    store.append({k: v for k, v in input_records()[0].items() if not k.startswith("input_")})
+    lines = summary_text(load_results(tmp_path), ["nimbus", "3dgs"]).splitlines()
+    nimbus_h = next(re.split(r"\s{2,}", line.strip()) for line in lines if line.startswith("H ") and "nimbus" in line)
+    assert dict(zip(head, nimbus_h))["Input PSNR"] == "n/a"
 
 
 def test_summary_table_counts_errors(store_root):

@@ -11,9 +11,12 @@ The "Ours" row is :data:`~benchmark.tables.results.COMPARISON_OURS` (``nimbus``,
 by ``auto``), labelled with its configuration; the ablation tables' "Ours" is ``nimbus-full``, and
 each table's note says both.
 
-When the store has clean-ceiling records (:mod:`benchmark.tables.ceiling`), each table has two more
-blocks under its methods: the ceiling (3DGS trained on the clean views) and each method's gap to it.
-The long-format CSV has the ceiling's lines (method ``3DGS (clean views)``), not the gaps.
+When its records carry the degraded input's own score (:mod:`benchmark.tables.inputs`), a table has one
+more block under its methods: the degraded test views themselves, scored alike (``degraded input (test
+views)``).  When the store has clean-ceiling records (:mod:`benchmark.tables.ceiling`), each table has two
+more blocks after that: the ceiling (3DGS trained on the clean views) and each method's gap to it.  The
+long-format CSV has the input's and the ceiling's lines (method ``degraded input (test views)``, ``3DGS
+(clean views)``), not the gaps.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Sequence
 
 from benchmark.data import PAPER_DIR, read_csv
-from benchmark.tables import ceiling
+from benchmark.tables import ceiling, inputs
 from benchmark.tables.model import AVERAGE, Block, LongFormat, Row, Table
 from benchmark.tables.provenance import mixed_note
 from benchmark.tables.results import (COMPARISON_OURS, METRIC_COLUMNS, METRICS, average, finished, ordered, protocols,
@@ -58,7 +61,7 @@ def table_key(weather: str) -> str:
 
 def _table(weather: str, key: str, label: str, scenes: list[str], rows: list[Row], extra: Sequence[Block] = (),
            **kw) -> Table:
-    """The table of one setting: the method rows, then the ``extra`` blocks (the clean ceiling's)."""
+    """The table of one setting: the method rows, then the ``extra`` blocks (the input's, the clean ceiling's)."""
     tag = table_key(weather)[len("weather_"):].replace("+", "-").replace("_", "-")
     blocks = [Block(rows, f"trained on {weather}" if extra else ""), *extra]
     return Table(key, weather, columns=METRIC_COLUMNS, groups=[*scenes, AVERAGE], blocks=blocks,
@@ -114,14 +117,18 @@ def tables(df, method_order: Sequence[str] = ()) -> tuple[list[Table], list[str]
             rows.append(row)
         presets = dict(zip(sub["method_label"], sub["preset"]))
         shown = ceilings[ceilings["scene_label"].isin(scenes) & ceilings["preset"].isin(set(presets.values()))]
-        extra = ceiling.blocks(rows, presets, shown, scenes)
+        given = inputs.blocks(sub, scenes)
+        ceilings_shown = ceiling.blocks(rows, presets, shown, scenes)
+        extra = [*given, *ceilings_shown]
         caption = weather_caption(weather)
         protocol = parse_family_setting(weather).protocol
         notes = [f"{synthesis_note(sub, protocol, PROTOCOL_SUMMARIES[protocol])}; SSIM protocol: "
                  f"{ssim_protocol}; LPIPS: {lp}; mean over seeds, Average = mean over scenes; {COMPARISON_OURS.note()}"]
-        if extra:
+        if given:
+            notes.append(inputs.note())
+        if ceilings_shown:
             notes.append(ceiling.note())
-        mixed = mixed_note(pd.concat([sub, shown]) if extra else sub)
+        mixed = mixed_note(pd.concat([sub, shown]) if ceilings_shown else sub)
         if mixed:
             notes.append(mixed)
         out.append(_table(weather, table_key(weather), "", scenes, rows, extra, title=caption, notes=notes,

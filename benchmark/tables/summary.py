@@ -4,8 +4,10 @@ One :class:`~benchmark.tables.model.Table`, written by the one writer: as text a
 run`` (:func:`summary_text`) and as the HTML report's sortable first table (:mod:`benchmark.html_report`).
 Each weather setting is a block (best and second best marked per setting); a row's values are the means
 of PSNR / SSIM / LPIPS / training seconds over its finished cells (every scene and seed), with its cell and
-error counts.  With clean-ceiling records (:mod:`benchmark.tables.ceiling`) the ceiling is the first block
-and a ``ΔPSNR vs clean`` column gives each row's gap to it.
+error counts.  With records that carry the degraded input's own score (:mod:`benchmark.tables.inputs`) an
+``Input PSNR`` column gives each row the PSNR of its degraded test views themselves, what it has to beat.  With
+clean-ceiling records (:mod:`benchmark.tables.ceiling`) the ceiling is the first block and a ``ΔPSNR vs clean``
+column gives each row's gap to it.
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ from __future__ import annotations
 from typing import Sequence
 
 from benchmark.cell import CEILING
-from benchmark.tables import ceiling
+from benchmark.tables import ceiling, inputs
 from benchmark.tables.model import Block, Column, Row, Table
 from benchmark.tables.results import METRIC_COLUMNS, finished, labelled, ordered, protocols
 from nimbus.errors import NimbusError
@@ -39,6 +41,7 @@ def summary_table(df, method_order: Sequence[str] = (), strict: bool = True) -> 
     every = labelled(df.copy())
     ok = every[every["status"] == "ok"]
     ceilings = ceiling.split(ok)[1]
+    given = not inputs.carried(ok).empty
     blocks = []
     for w in ordered(every["weather"], (CEILING, *family_order())):
         sub = every[every["weather"] == w]
@@ -52,6 +55,8 @@ def summary_table(df, method_order: Sequence[str] = (), strict: bool = True) -> 
                 row.values[("", col.key)] = None if len(v) == 0 or v.isna().any() else float(v.mean())
             row.values[("", "cells")] = float(len(g))
             row.values[("", "errors")] = float(len(g) - len(good))
+            if given:
+                row.values[("", inputs.COLUMN.key)] = inputs.row_value(good)
             if len(ceilings) and w != CEILING:
                 row.values[("", GAP_COLUMN.key)] = ceiling.mean_gap(good, ceilings)
             rows.append(row)
@@ -67,11 +72,13 @@ def summary_table(df, method_order: Sequence[str] = (), strict: bool = True) -> 
             if strict:
                 raise
             notes.append(f"Note: {e}")
+    if given:
+        notes.append(inputs.summary_note())
     if len(ceilings):
         notes.append(f"{CEILING} = the clean ceiling, {ceiling.LABEL}: 3dgs trained on the clean training views; "
                      f"{GAP_COLUMN.text} = the mean over a row's finished cells of the cell's PSNR minus its scene's "
                      "ceiling (same size and preset), dB")
-    columns = (*SUMMARY_COLUMNS, GAP_COLUMN) if len(ceilings) else SUMMARY_COLUMNS
+    columns = (*SUMMARY_COLUMNS, *([inputs.COLUMN] if given else []), *([GAP_COLUMN] if len(ceilings) else []))
     return Table("summary", "summary", "Summary", columns, [""], blocks, lead=("Method", "Weather"), notes=notes)
 
 
