@@ -110,7 +110,8 @@ def test_full_model_trains_and_writes_the_decomposition(hazy, tmp_path):
     n, cam = len(hazy.train_views), hazy.train_views[0].camera
     nim = res["nimbus"]
     assert res["components"] == ["csm", "plm", "ggs"] and nim["mode"] == "forced"
-    assert nim["residual_refreshes"] == 1 + (16 - 6) // 4  # after stage 1, then at 10 and 14
+    # R of every view after stage 1, then (refresh_mode=lazy) a view's own at its first draw after 10 and after 14
+    assert nim["residual_refreshes"] == 1 and 0 < nim["lazy_refreshes"] <= 16 - 10
     assert nim["residual_bytes"] == n * cam.height * cam.width * 3
     assert math.isfinite(res["psnr"]) and 0 < res["ssim"] <= 1 and _finite_state(t.method)
     strips = sorted((tmp_path / "run" / "decomposition").glob("*.png"))
@@ -252,8 +253,9 @@ def test_every_gaussian_pruned_stops_cleanly(hazy, tmp_path):
         _nimbus(hazy, _cfg(prune_opacity=0.999), tmp_path / "empty").run()
 
 
-def test_resume_continues_to_the_same_result(hazy, tmp_path):
-    cfg = _cfg(write_decomposition=False)
+@pytest.mark.parametrize("refresh", ["lazy", "all"])
+def test_resume_continues_to_the_same_result(refresh, hazy, tmp_path):
+    cfg = _cfg(write_decomposition=False, refresh_mode=refresh)
     full = _nimbus(hazy, cfg, tmp_path / "full", seed=1).run()
 
     half = _nimbus(hazy, cfg, tmp_path / "half", seed=1)
@@ -275,6 +277,7 @@ def test_resume_continues_to_the_same_result(hazy, tmp_path):
     assert out["num_gaussians"] == full["num_gaussians"]
     assert out["psnr"] == pytest.approx(full["psnr"], abs=1e-4)
     assert out["nimbus"]["residual_refreshes"] == full["nimbus"]["residual_refreshes"]
+    assert out["nimbus"]["lazy_refreshes"] == full["nimbus"]["lazy_refreshes"]
 
 
 @pytest.mark.parametrize("variant", [dict(extinction="gaussian"), dict(extinction="uniform", airlight="sh"),
@@ -290,6 +293,30 @@ def test_paper_variants_train(variant, hazy, tmp_path):
         assert t.params["extinction_logit"].shape[0] == len(t.params)
     if variant.get("refresh_mode") == "lazy":
         assert res["nimbus"]["lazy_refreshes"] > 0 and res["nimbus"]["residual_refreshes"] == 1
+
+
+def test_lazy_refresh_checks_consistency_against_the_neighbours_last_surfaces(rainy, tmp_path):
+    """``refresh_mode=lazy`` re-extracts a view's R from the step's own render, with the view-consistency check
+    run against each neighbour's surface from when it was last rendered: with every surface current it gives
+    exactly the R that a full refresh (every view re-rendered) gives."""
+    from nimbus.methods.gs3d import GaussianSplatting
+
+    runner = _nimbus(rainy, _cfg(iterations=12, m_init=4, refresh_mode="lazy"), tmp_path / "lazy")
+    res = runner.run()
+    m = runner.method
+    assert res["nimbus"]["lazy_refreshes"] > 0 and res["nimbus"]["residual_refreshes"] == 1
+    assert m._consistency_check() is not None and len(m._surfaces) == len(rainy.train_views)
+    step = runner.iteration
+    _, surfaces = m._composites(step)
+    for vi in (0, len(surfaces) - 1):
+        m._surfaces = list(surfaces)
+        render = GaussianSplatting.render(m, m.train_views[vi].camera, m.active_sh_degree(step))
+        m.particulate.store.stamps[vi] = -1  # stale: the next use refreshes it
+        m._lazy_refresh(step, vi, render, m.compose(vi, render)["con"])
+        lazy = m.particulate.store.get(vi).clone()
+        assert m.particulate.store.stamps[vi] == step and lazy.sum() > 0
+        m._refresh_all(step)
+        assert torch.equal(m.particulate.store.get(vi), lazy)
 
 
 def test_cli_trains_a_named_variant(tmp_path):

@@ -68,3 +68,14 @@ def test_setup_kernels_builds_or_says_why(monkeypatch, capsys):
     out = capsys.readouterr().out
     assert "compositing kernel: " in out and "ray-march kernel: " in out and "cached in " in out
     assert "training-step kernels (loss, gradient check): " in out
+
+
+def test_a_method_can_be_timed_with_overrides():
+    """``NAME:key=value,...`` times a variant beside its method in one run; a bad override is the trainer's error."""
+    from nimbus.errors import NimbusError
+
+    scene = load_scene_arg("builtin:garden:tiny")
+    r = training.time_method("3dgs:iterations=7,sh_degree=0", scene, "tiny", None, 0, 1, steps=2)
+    assert r["iterations"] == 7 and r["steps"] == 2 and r["whole"] > 0
+    with pytest.raises(NimbusError, match="refresh_mode"):
+        training.time_method("nimbus:refresh_mode=sometimes", scene, "tiny", None, 0, 1, steps=2)

@@ -107,8 +107,8 @@ def _paper_m_init(k: int) -> Callable:
 #: preset gives the paper's 4k + 26k, 128^3, K = 64 (see README "Where we depart from the paper").
 PAPER: dict[str, Any] = {
     "components": FULL,
-    # PLM: R = ReLU(I_in - I_con), nothing else decides what enters R.
-    "residual_outlier_sigmas": 0.0, "residual_tophat": 0.0, "consistency_neighbours": 0,
+    # PLM: R = ReLU(I_in - I_con), nothing else decides what enters R, every view re-rendered each Z_ref.
+    "residual_outlier_sigmas": 0.0, "residual_tophat": 0.0, "consistency_neighbours": 0, "refresh_mode": "all",
     # CSM: L_DCP on every pixel; colours start at the SfM colours; the box is the 2x AABB of every centre.
     "dcp_surface_only": False, "init_dehaze": False, "box_scale": 2.0, "box_content_factor": 0.0,
     "view_density": False, "lambda_dehaze": 0.0,

@@ -29,7 +29,8 @@ optimiser step        ``optimizer_step`` (NimbusGS: with the medium's Adam)
 densification         ``strategy.step_post_backward`` (statistics every step, densify and
                       prune at its steps), amortised
 NimbusGS refresh      ``after_step``: the stage boundary (evidence, first R) and the periodic
-                      R refreshes, amortised
+                      R refreshes of ``refresh_mode=all``, amortised (a ``lazy`` refresh
+                      runs inside the loss and counts there)
 other                 the rest of ``train_iteration`` (view pick, guards, PSNR)
 ====================  ==================================================================
 
@@ -209,12 +210,19 @@ def instrumented(method, probe: Probe):
 
 def time_method(method_name: str, scene, preset_name: str, iterations: int | None, warmup: int,
                 threads: int, steps: int | None = None) -> dict:
-    """Train ``method_name`` on ``scene`` and return its per-part figures (see :func:`summarise`)."""
+    """Train ``method_name`` on ``scene`` and return its per-part figures (see :func:`summarise`).
+
+    ``method_name`` may carry ``--set`` overrides after a colon, ``nimbus:refresh_mode=all,airlight_stride=2``, so
+    two variants of one method are timed side by side in one run.
+    """
+    from nimbus.config_set import apply_overrides
     from nimbus.methods.registry import get_method
     from nimbus.train.runner import Runner
 
     torch.set_num_threads(threads)
-    config = get_method(method_name).preset(preset_name)
+    method_name, _, spec = method_name.partition(":")
+    overrides = dict(item.split("=", 1) for item in spec.split(",") if item)
+    config = apply_overrides(get_method(method_name).preset(preset_name), overrides)
     if hasattr(config, "write_decomposition"):
         config = dataclasses.replace(config, write_decomposition=False)
     if iterations:
@@ -315,7 +323,8 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", default="builtin:garden", help="builtin:NAME (timed at --sizes) or a scene folder")
     parser.add_argument("--sizes", nargs="+", default=["tiny", "small"], help="built-in scene sizes")
-    parser.add_argument("--methods", nargs="+", default=["3dgs", "nimbus-full", "nimbus"])
+    parser.add_argument("--methods", nargs="+", default=["3dgs", "nimbus-full", "nimbus"],
+                        help="registry names, each optionally with overrides: nimbus:refresh_mode=all")
     parser.add_argument("--preset", default="tiny", help="the methods' preset (its schedule is what is timed)")
     parser.add_argument("--iterations", type=int, default=None, help="rescale the preset's schedule to N steps")
     parser.add_argument("--steps", type=int, default=None,

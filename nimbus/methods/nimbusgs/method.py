@@ -91,6 +91,8 @@ class NimbusGS(GaussianSplatting):
         self._rays: dict[int, ViewRays] = {}
         #: The residual's consistency check (built at its first use: only runs with PLM refresh it).
         self._consistency = None
+        #: ``refresh_mode=lazy``: each training view's rendered surface when it was last rendered (None until needed).
+        self._surfaces: list[ViewGeometry] | None = None
         self.medium: Medium | None = None
         self.particulate: ParticulateLayer | None = None
         self.ggs = GGSFactors(c.ggs_depth, c.ggs_radius, c.ggs_error, c.ggs_r0, tuple(c.ggs_clip))
@@ -286,10 +288,7 @@ class NimbusGS(GaussianSplatting):
         layer = self.particulate
         if self.stage == 2 and layer is not None:
             if c.refresh_mode == "lazy" and c.residual_source == "render":
-                point = c.m_init + (step - 1 - c.m_init) // c.refresh_interval * c.refresh_interval
-                if layer.store.is_stale(view_index, point):
-                    layer.store.set(view_index, layer.residual(view_index, pred.detach()), step)
-                    self.counts["lazy_refreshes"] += 1
+                self._lazy_refresh(step, view_index, render, pred)
             pred = pred + layer.store.get(view_index)
         loss = stage_loss(pred, gt, c.lambda_dssim, self.train_masks[view_index])
         if self.use_csm:
@@ -350,6 +349,15 @@ class NimbusGS(GaussianSplatting):
 
     # --- particulate layer --------------------------------------------------------------
     @torch.no_grad()
+    def _surface(self, vi: int, render: dict) -> ViewGeometry:
+        """The rendered surface of training view ``vi`` in ``render`` (depth / alpha, valid where alpha is high)."""
+        alpha = render["alpha"].detach()
+        valid = alpha >= self.cfg.surface_alpha_min
+        if self.train_masks[vi] is not None:  # masked pixels neither ask nor answer the consistency check
+            valid = valid & self.train_masks[vi].reshape(valid.shape)
+        return ViewGeometry(self.train_views[vi].camera, render["depth"].detach() / alpha.clamp_min(1e-6), valid)
+
+    @torch.no_grad()
     def _composites(self, step: int) -> tuple[list[Tensor], list[ViewGeometry]]:
         """I_con and the rendered surface of every training view with the current model."""
         cons, geometry = [], []
@@ -357,12 +365,31 @@ class NimbusGS(GaussianSplatting):
         for vi, view in enumerate(self.train_views):
             render = super().render(view.camera, deg)
             cons.append(self.compose(vi, render)["con"])
-            alpha = render["alpha"]
-            valid = alpha >= self.cfg.surface_alpha_min
-            if self.train_masks[vi] is not None:  # masked pixels neither ask nor answer the consistency check
-                valid = valid & self.train_masks[vi].reshape(valid.shape)
-            geometry.append(ViewGeometry(view.camera, render["depth"] / alpha.clamp_min(1e-6), valid))
+            geometry.append(self._surface(vi, render))
         return cons, geometry
+
+    @torch.no_grad()
+    def _lazy_refresh(self, step: int, vi: int, render: dict, con: Tensor) -> None:
+        """``refresh_mode=lazy``: R of view ``vi`` from this step's render when it is stale (no extra render).
+
+        Its view-consistency check uses this step's surface of ``vi`` and its neighbours' surfaces from when
+        they were last rendered (each at most about one refresh period old; every view's from the end of
+        stage 1, or from one render of every view after a resumed run, before that).
+        """
+        c = self.cfg
+        check = self._consistency_check()
+        if check is not None:
+            if self._surfaces is None:
+                self._surfaces = self._composites(step)[1]
+            self._surfaces[vi] = self._surface(vi, render)
+        point = c.m_init + (step - 1 - c.m_init) // c.refresh_interval * c.refresh_interval
+        if not self.particulate.store.is_stale(vi, point):
+            return
+        t0 = time.perf_counter()
+        excess = check.excess(vi, self._surfaces) if check is not None else None
+        self.particulate.store.set(vi, self.particulate.residual(vi, con.detach(), excess), step)
+        self.counts["lazy_refreshes"] += 1
+        self.timing["plm_refresh_s"] += time.perf_counter() - t0
 
     def _consistency_check(self):
         if self._consistency is None:
@@ -392,6 +419,8 @@ class NimbusGS(GaussianSplatting):
         if need_renders:
             t0 = time.perf_counter()
             composites, geometry = self._composites(step)
+            if c.refresh_mode == "lazy":
+                self._surfaces = list(geometry)
             render_time = (time.perf_counter() - t0) / len(composites)
             excesses = view_excesses(self._consistency_check(), geometry)
             self.timing["evidence_s" if self.use_plm is None else "plm_refresh_s"] += time.perf_counter() - t0
@@ -475,7 +504,10 @@ class NimbusGS(GaussianSplatting):
                  "timing": {k: float(v) for k, v in self.timing.items()},
                  "counts": {k: int(v) for k, v in self.counts.items()},
                  "medium": self.medium.state_dict() if self.use_csm else None,
-                 "store": self.particulate.store.state_dict() if self.particulate is not None else None}
+                 "store": self.particulate.store.state_dict() if self.particulate is not None else None,
+                 # refresh_mode=lazy: the neighbours' surfaces its consistency check uses, so a resumed run goes on
+                 # exactly as an uninterrupted one.
+                 "surfaces": None if self._surfaces is None else [(g.depth, g.valid) for g in self._surfaces]}
         return {**super().state_dict(), "extra": extra}
 
     def load_state_dict(self, state: dict) -> None:
@@ -497,6 +529,10 @@ class NimbusGS(GaussianSplatting):
         if extra["store"] is not None:
             self.particulate = ParticulateLayer(self.cfg, self.train_images, self.train_masks, self.device)
             self.particulate.store.load_state_dict(extra["store"])
+        surfaces = extra.get("surfaces")  # absent from a checkpoint written before refresh_mode=lazy kept them
+        self._surfaces = None if surfaces is None else [
+            ViewGeometry(view.camera, depth.to(self.device), valid.to(self.device))
+            for view, (depth, valid) in zip(self.train_views, surfaces)]
         self._sync_stage(self.iteration + 1)
 
     # --- outputs ------------------------------------------------------------------------
