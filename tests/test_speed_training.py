@@ -79,3 +79,7 @@ def test_a_method_can_be_timed_with_overrides():
     assert r["iterations"] == 7 and r["steps"] == 2 and r["whole"] > 0
     with pytest.raises(NimbusError, match="refresh_mode"):
         training.time_method("nimbus:refresh_mode=sometimes", scene, "tiny", None, 0, 1, steps=2)
+    with pytest.raises(NimbusError, match="key=value"):
+        training.time_method("nimbus:lazy", scene, "tiny", None, 0, 1, steps=2)
+    with pytest.raises(NimbusError, match="ggs_clip"):  # a value with a comma stays one value (then checked)
+        training.time_method("nimbus:ggs_clip=2,3,refresh_mode=all", scene, "tiny", None, 0, 1, steps=2)

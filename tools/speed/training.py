@@ -55,6 +55,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import re
 import statistics
 import tempfile
 import time
@@ -65,6 +66,7 @@ import torch
 
 from benchmark.tables.model import Block, Column, Row, Table
 from benchmark.tables.writer import to_markdown
+from nimbus.errors import NimbusError
 
 #: The parts, in table order: (key, label).
 PARTS = (
@@ -221,7 +223,10 @@ def time_method(method_name: str, scene, preset_name: str, iterations: int | Non
 
     torch.set_num_threads(threads)
     method_name, _, spec = method_name.partition(":")
-    overrides = dict(item.split("=", 1) for item in spec.split(",") if item)
+    items = [item for item in re.split(r",(?=\w+=)", spec) if item]  # a value may hold commas: ggs_clip=0.5,3
+    if any("=" not in item for item in items):
+        raise NimbusError(f"{spec!r}: overrides after the method's colon are key=value, comma-separated")
+    overrides = dict(item.split("=", 1) for item in items)
     config = apply_overrides(get_method(method_name).preset(preset_name), overrides)
     if hasattr(config, "write_decomposition"):
         config = dataclasses.replace(config, write_decomposition=False)
@@ -356,4 +361,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from nimbus.cli_util import run_cli
+
+    raise SystemExit(run_cli(main))
