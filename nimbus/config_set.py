@@ -55,12 +55,13 @@ _NULL = ("null", "none")
 _NEAR = 5
 
 
-def parse_set_args(items: Iterable[str] | None) -> dict[str, str]:
-    """``["key=value", ...]`` from repeated ``--set`` flags -> ``{key: value}`` (a later key wins)."""
+def parse_set_args(items: Iterable[str] | None, flag: str = "--set") -> dict[str, str]:
+    """``["key=value", ...]`` from repeated ``--set`` flags -> ``{key: value}`` (a later key wins); ``flag``
+    names the option in the error message."""
     out: dict[str, str] = {}
     for item in items or []:
         if "=" not in item:
-            raise NimbusError(f"--set expects key=value, got {item!r}")
+            raise NimbusError(f"{flag} expects key=value, got {item!r}")
         key, raw = item.split("=", 1)
         out[key.strip()] = raw.strip()
     return out

@@ -66,7 +66,6 @@ import torch
 
 from benchmark.tables.model import Block, Column, Row, Table
 from benchmark.tables.writer import to_markdown
-from nimbus.errors import NimbusError
 
 #: The parts, in table order: (key, label).
 PARTS = (
@@ -217,16 +216,14 @@ def time_method(method_name: str, scene, preset_name: str, iterations: int | Non
     ``method_name`` may carry ``--set`` overrides after a colon, ``nimbus:refresh_mode=all,airlight_stride=2``, so
     two variants of one method are timed side by side in one run.
     """
-    from nimbus.config_set import apply_overrides
+    from nimbus.config_set import apply_overrides, parse_set_args
     from nimbus.methods.registry import get_method
     from nimbus.train.runner import Runner
 
     torch.set_num_threads(threads)
     method_name, _, spec = method_name.partition(":")
     items = [item for item in re.split(r",(?=\w+=)", spec) if item]  # a value may hold commas: ggs_clip=0.5,3
-    if any("=" not in item for item in items):
-        raise NimbusError(f"{spec!r}: overrides after the method's colon are key=value, comma-separated")
-    overrides = dict(item.split("=", 1) for item in items)
+    overrides = parse_set_args(items, flag=f"--methods {method_name}:")
     config = apply_overrides(get_method(method_name).preset(preset_name), overrides)
     if hasattr(config, "write_decomposition"):
         config = dataclasses.replace(config, write_decomposition=False)
