@@ -220,7 +220,7 @@ class NimbusConfig(TrainConfig):
         The ``tiny`` preset uses 4, chosen on its 24 hazy validation cells (scene seeds 1 and 2,
         every hazy setting): mean PSNR 17.24 dB at 1, 17.34 at 2, 17.48 at 4, 17.54 at 8 (4 is
         within 0.1 dB of 8 and departs less from the degradation model; 23 of 24 cells at or above
-        restore-3dgs against 21 at 1).  At 64 x 48 the rain and snow thinner than a pixel become a
+        restore-3dgs against 18 at 1).  At 64 x 48 the rain and snow thinner than a pixel become a
         faint veil over about half the pixels (+0.02 to +0.03), which every view shows alike, so the
         degraded-image loss leaves it in I_hat; the prior's dehaze reads it as haze.  ``fast`` keeps
         1: on its small validation cell (240 x 180, where the particles are resolved) 4 gave -0.09 dB.
