@@ -8,6 +8,7 @@ to a table layout that moves a committed figure or sentence shows here, not in a
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 from pathlib import Path
@@ -93,6 +94,19 @@ def test_validation_tiny_summaries_regenerate():
             assert summary(records, args[args.index("--tags") + 1].split(",")) in after, line
             checked += 1
     assert checked >= 4
+
+
+def test_validation_summary_refuses_tags_without_a_common_cell(tmp_path, capsys):
+    from tools.validation_cells import main
+
+    records = tmp_path / "records.jsonl"
+    records.write_text("".join(json.dumps({"tag": t, "folder": f"VAL/seed-1/data/{c}/H", "psnr": 20.0, "ssim": 0.5})
+                               + "\n" for t, c in (("a", "garden-tiny"), ("b", "street-tiny"))))
+    assert main(["--summary", str(records), "--tags", "a,b"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: no cell has a record of every tag") and "a: 1 cell(s); b: 1 cell(s)" in err
+    assert main(["--summary", str(records), "--tags", "a"]) == 0
+    assert "| seed-1 garden-tiny H | 20.00 / 0.500 |" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("folder", ["small_H", "small_H_before_sky", "small_HRS", "small_HS", "small_HR"])

@@ -64,7 +64,12 @@ def summary(records: Path, tags: list[str]) -> str:
         r = json.loads(line)
         if r["tag"] in recs:
             recs[r["tag"]][cell_name(r["folder"])] = (r["psnr"], r["ssim"])
+    if not tags:
+        raise ValueError("give --tags: the comma list of tags to table")
     cells = sorted(set.intersection(*(set(v) for v in recs.values())))
+    if not cells:
+        have = "; ".join(f"{t}: {len(v)} cell(s)" for t, v in recs.items())
+        raise ValueError(f"no cell has a record of every tag in {records} ({have}); table tags that share cells")
     rows = ["| cell | " + " | ".join(tags) + " |", "| --- |" + " --- |" * len(tags)]
     for c in cells:
         rows.append(f"| {c} | " + " | ".join(f"{recs[t][c][0]:.2f} / {recs[t][c][1]:.3f}" for t in tags) + " |")
@@ -89,7 +94,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=Path("validation_cells.jsonl"))
     args = p.parse_args(argv)
     if args.summary:
-        print(summary(args.summary, [t for t in args.tags.split(",") if t]))
+        try:
+            print(summary(args.summary, [t for t in args.tags.split(",") if t]))
+        except (OSError, ValueError) as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
         return 0
     if not args.tag or not args.folders:
         p.error("give --tag and at least one FOLDER (or --summary RECORDS)")
