@@ -223,7 +223,8 @@ class NimbusConfig(TrainConfig):
         restore-3dgs against 18 at 1).  At 64 x 48 the rain and snow thinner than a pixel become a
         faint veil over about half the pixels (+0.02 to +0.03), which every view shows alike, so the
         degraded-image loss leaves it in I_hat; the prior's dehaze reads it as haze.  ``fast`` keeps
-        1: on its small validation cell (240 x 180, where the particles are resolved) 4 gave -0.09 dB.
+        1: on its two small validation cells (garden and street under H+R+S, 240 x 180, where the
+        particles are resolved) 4 gave -0.09 and -0.47 dB.
         Records and commands: ``tables/validation_tiny``.
     prior_stage2 : float
         The prior's weight in stage 2, as a fraction of ``lambda_dehaze`` (1: the whole run; 0:
