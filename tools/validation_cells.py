@@ -59,13 +59,13 @@ def cell_name(folder: str) -> str:
 def summary(records: Path, tags: list[str]) -> str:
     """A Markdown table: PSNR / SSIM of each tag per cell (the last record of a tag and cell), the tags' means over
     the cells all of them have, and each later tag's wins over the first."""
+    if not tags:
+        raise ValueError("give --tags: the comma list of tags to table")
     recs: dict[str, dict[str, tuple[float, float]]] = {t: {} for t in tags}
     for line in records.read_text().splitlines():
         r = json.loads(line)
         if r["tag"] in recs:
             recs[r["tag"]][cell_name(r["folder"])] = (r["psnr"], r["ssim"])
-    if not tags:
-        raise ValueError("give --tags: the comma list of tags to table")
     cells = sorted(set.intersection(*(set(v) for v in recs.values())))
     if not cells:
         have = "; ".join(f"{t}: {len(v)} cell(s)" for t, v in recs.items())
