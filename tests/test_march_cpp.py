@@ -101,6 +101,30 @@ def test_compiled_march_is_the_same_bits_at_any_thread_count(kernel):
     assert torch.equal(g1, g2)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("samples", [1, 16, 70])  # 70: more than one 64-sample chunk per ray
+def test_kept_backward_is_the_same_bits_as_evaluating_again(kernel, dtype, samples):
+    """The differentiated march keeps each sample's softplus' from its forward (march_forward_keep); its backward
+    must equal march_backward's, which evaluates every sample again, bit for bit, and so must the forward."""
+    grid, (origin, dirs, ts, te) = _grid(dtype, (6, 7, 8)), _rays(dtype, n=5000)
+    feats = grid.features.detach()[0, 0].clone()
+    feats[-3:, -3:, -3:] = 30.0  # a corner above softplus's threshold (softplus' = 1 there)
+    args = (feats, origin, dirs, ts, te, grid.lo.to(dtype), grid.hi.to(dtype))
+    ops = torch.ops.nimbus_march
+    plain = ops.march_forward(*args, samples)
+    kept_s, kept = ops.march_forward_keep(*args, samples)
+    assert torch.equal(plain, kept_s) and kept.shape == (5000, samples)
+    assert float((kept == 0).float().mean()) > 0.05  # samples outside the box
+    assert samples == 1 or float((kept == 1).float().mean()) > 0  # the corner is sampled
+    grad_s = torch.randn(5000, generator=torch.Generator().manual_seed(5), dtype=dtype)
+    grad_s[::7] = 0.0
+    again = ops.march_backward(*args, samples, grad_s)
+    assert float(again.abs().max()) > 1e-3
+    assert torch.equal(ops.march_backward_kept(*args, samples, kept, grad_s), again)
+    with pytest.raises(RuntimeError, match="kept must be"):
+        ops.march_backward_kept(*args, samples, kept[:, :-1].contiguous(), grad_s)
+
+
 def test_torch_march_matches_reference_including_interval_gradients():
     grid, (origin, dirs, ts, te) = _grid(torch.float64), _rays(torch.float64)
     weights = torch.randn(2, ts.shape[0], generator=torch.Generator().manual_seed(4), dtype=torch.float64)
@@ -134,3 +158,48 @@ def test_march_backend_validation(kernel):
     assert d.grad is not None and float(d.grad.abs().max()) > 0
     with pytest.raises(NimbusError, match="backend 'cpp'"):
         march(grid, origin, d, ts, te, 8, backend="cpp")
+
+
+def _torch_tv(features):
+    b = torch.nn.functional.softplus(features)
+    return sum(torch.diff(b, dim=d).abs().mean() for d in range(3))
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_compiled_grid_tv_matches_torch_values_and_gradients(kernel, dtype, tol):
+    """L_TV in one compiled pass equals ExtinctionGrid.tv's torch expression: on a non-cubic grid, with voxels
+    above softplus's threshold and two equal neighbours (|x|'s derivative at 0 is 0 in both)."""
+    feats = torch.randn(9, 7, 11, generator=torch.Generator().manual_seed(6), dtype=dtype) * 5
+    feats[0, 0, :4] = 25.0
+    feats[3, 2, 5] = feats[3, 2, 6]
+    feats.requires_grad_()
+    got, want = march_kernel.grid_tv(feats), _torch_tv(feats)
+    torch.testing.assert_close(got, want, rtol=tol, atol=0)
+    (g_got,) = torch.autograd.grad(got * 3.0, feats)
+    (g_want,) = torch.autograd.grad(want * 3.0, feats)
+    assert float(g_want.abs().max()) > 1e-3
+    torch.testing.assert_close(g_got, g_want, rtol=tol, atol=tol * float(g_want.abs().max()))
+    torch.autograd.gradcheck(march_kernel.grid_tv, (torch.randn(3, 4, 5, dtype=torch.float64, requires_grad=True),))
+
+
+def test_grid_tv_is_the_same_bits_at_any_thread_count_and_extinction_grid_uses_it(kernel):
+    grid = _grid(torch.float32, (20, 18, 16), std=0.7)
+    threads = torch.get_num_threads()
+    try:
+        results = []
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            grid.zero_grad(set_to_none=True)
+            value = grid.tv()
+            value.backward()
+            results.append((value.detach(), grid.features.grad.clone(), grid.log_scale.grad.clone()))
+    finally:
+        torch.set_num_threads(threads)
+    assert all(torch.equal(a, b) for a, b in zip(*results))
+    value, g_feat, g_scale = results[0]
+    grid.zero_grad(set_to_none=True)
+    want = sum(torch.diff(grid.values(), dim=d).abs().mean() for d in range(3))  # the torch path of tv()
+    want.backward()
+    torch.testing.assert_close(value, want.detach(), rtol=1e-5, atol=0)
+    torch.testing.assert_close(g_feat, grid.features.grad, rtol=1e-5, atol=1e-5 * float(g_feat.abs().max()))
+    torch.testing.assert_close(g_scale, grid.log_scale.grad, rtol=1e-5, atol=0)

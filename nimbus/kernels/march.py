@@ -19,7 +19,7 @@ from torch.autograd.function import once_differentiable
 
 from nimbus.kernels.extension import Extension
 
-__all__ = ["available", "usable", "grid_optical_depth", "EXTENSION"]
+__all__ = ["available", "usable", "grid_optical_depth", "grid_tv", "EXTENSION"]
 
 #: march.cpp (torch.ops.nimbus_march) and airlight.cpp (torch.ops.nimbus_airlight): one library, one build.
 EXTENSION = Extension("nimbus_march", ("march.cpp", "airlight.cpp"), kernel="ray-march kernel",
@@ -39,19 +39,26 @@ def usable(features: Tensor, *rays: Tensor) -> bool:
 
 
 class _GridMarch(torch.autograd.Function):
+    # A march that will be differentiated keeps each sample's softplus' [P, K] from its forward
+    # (march_forward_keep), so that the backward only locates the samples and scatters: the same
+    # gradient, bit for bit, as march_backward's, which evaluates every sample again.
     @staticmethod
     def forward(ctx, features, origin, dirs, t_start, t_end, lo, hi, samples):
-        S = torch.ops.nimbus_march.march_forward(features, origin, dirs, t_start, t_end, lo, hi, samples)
-        ctx.save_for_backward(features, origin, dirs, t_start, t_end, lo, hi)
+        ops = torch.ops.nimbus_march
+        if ctx.needs_input_grad[0]:
+            S, kept = ops.march_forward_keep(features, origin, dirs, t_start, t_end, lo, hi, samples)
+            ctx.save_for_backward(features, origin, dirs, t_start, t_end, lo, hi, kept)
+        else:
+            S = ops.march_forward(features, origin, dirs, t_start, t_end, lo, hi, samples)
         ctx.samples = samples
         return S
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_s):
-        features, origin, dirs, t_start, t_end, lo, hi = ctx.saved_tensors
-        g = torch.ops.nimbus_march.march_backward(features, origin, dirs, t_start, t_end, lo, hi, ctx.samples,
-                                                  grad_s.contiguous())
+        features, origin, dirs, t_start, t_end, lo, hi, kept = ctx.saved_tensors
+        g = torch.ops.nimbus_march.march_backward_kept(features, origin, dirs, t_start, t_end, lo, hi, ctx.samples,
+                                                       kept, grad_s.contiguous())
         return (g,) + (None,) * 7
 
 
@@ -82,3 +89,32 @@ def grid_optical_depth(features: Tensor, lo: Tensor, hi: Tensor, origin: Tensor,
     args = [t.detach().to(dtype).contiguous() for t in (origin.reshape(3), dirs, t_start.reshape(-1),
                                                          t_end.reshape(-1), lo.reshape(3), hi.reshape(3))]
     return _GridMarch.apply(grid.contiguous(), *args, int(samples))
+
+
+class _GridTV(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, features):
+        value, softplus, derivative = torch.ops.nimbus_march.grid_tv(features)
+        ctx.save_for_backward(softplus, derivative)
+        return value
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad):
+        softplus, derivative = ctx.saved_tensors
+        return torch.ops.nimbus_march.grid_tv_backward(softplus, derivative, grad.detach())
+
+
+def grid_tv(features: Tensor) -> Tensor:
+    """``sum over the three axes of mean |forward difference of softplus(features)|`` (0-d), differentiable.
+
+    :meth:`~nimbus.methods.nimbusgs.scattering.ExtinctionGrid.tv` without the density scale, in one
+    compiled pass (``csrc/march.cpp``: about 1 ms instead of torch's 10 at 64^3 with its backward, one
+    thread); equal to the torch expression up to float rounding (softplus by the march's polynomial,
+    the sums in slice order: the same bits at any thread count).
+
+    ``features`` [Z, Y, X] or [1, 1, Z, Y, X], every side >= 2, CPU float32/float64.  Raises RuntimeError
+    when the compiled library is unavailable.
+    """
+    EXTENSION.require("nimbus.kernels.march")
+    return _GridTV.apply(features.reshape(features.shape[-3:]).contiguous())

@@ -19,7 +19,11 @@
 // contraction), so the same numbers as the generic code, in half the vector instructions.
 //
 // Backward: dS/dfeatures only (the rays and their intervals are constants here; the
-// Python wrapper uses the torch path when t0 / t1 need gradients).  The rays are split
+// Python wrapper uses the torch path when t0 / t1 need gradients).  A forward that will be
+// differentiated (march_forward_keep) also returns each sample's softplus' [P, K] (0 outside
+// the box), computed from the same exp as its softplus; march_backward_kept then only locates
+// each sample and scatters, instead of gathering and evaluating it again.  The values and the
+// order of the scatters are those of march_backward, so the gradient is the same bits.  The rays are split
 // into parts by their number alone (kMaxParts, kMinRaysPerPart); each part scatters into its
 // own grid and the grids are summed in part order, so the result is the same bits for any
 // thread count.
@@ -42,6 +46,8 @@
 #include <cstdint>
 #include <cstring>
 #include <memory>
+#include <tuple>
+#include <vector>
 
 #include "medium.h"
 
@@ -211,6 +217,27 @@ NIMBUS_INLINE void softplus_grad_block(float* x, int n) {
   }
 }
 
+// softplus of n values in place and its derivative in d, from one exp per value: the same numbers as
+// softplus_block followed by softplus_grad_block on a copy.
+NIMBUS_INLINE void softplus_keep_block(double* x, double* d, int n) {
+  for (int j = 0; j < n; ++j) {
+    const double z = std::exp(x[j]);
+    d[j] = x[j] > kSoftplusThreshold ? 1.0 : z / (z + 1.0);
+    x[j] = x[j] > kSoftplusThreshold ? x[j] : std::log1p(std::exp(x[j]));
+  }
+}
+NIMBUS_INLINE void softplus_keep_block(float* x, float* d, int n) {
+  for (int j = 0; j < n; j += kLanes) {
+    VecF v = load<VecF>(x + j);
+    const VecF a = select(v < 0.0f, -v, v);
+    const VecF e = exp_nonpositive(-a);
+    const VecF sp = select(v > 0.0f, v, splat(0.0f)) + log1p_unit(e);
+    const VecF sig = select(v >= 0.0f, splat(1.0f), e) / (e + 1.0f);  // sigmoid (medium.h) on the same e
+    store(d + j, select(v > float(kSoftplusThreshold), splat(1.0f), sig));
+    store(x + j, select(v > float(kSoftplusThreshold), v, sp));
+  }
+}
+
 template <typename T>
 Grid<T> make_grid(const at::Tensor& features, const at::Tensor& lo, const at::Tensor& hi) {
   Grid<T> g{};
@@ -230,22 +257,34 @@ Grid<T> make_grid(const at::Tensor& features, const at::Tensor& lo, const at::Te
   return g;
 }
 
-// S[r] for rays b .. e - 1.
+// S[r] for rays b .. e - 1; with D (not null), each sample's softplus' in D[r * K + i] (0 outside the box).
 template <typename T>
-NIMBUS_INLINE void forward_rays(const Grid<T>& g, const Rays<T>& rays, int64_t b, int64_t e, T* S) {
+NIMBUS_INLINE void forward_rays(const Grid<T>& g, const Rays<T>& rays, int64_t b, int64_t e, T* S, T* D) {
   Cell<T> c;
-  T f[kChunk];
+  T f[kChunk], fd[kChunk];
+  int idx[kChunk];
+  const int64_t K = rays.samples;
   for (int64_t r = b; r < e; ++r) {
     const T ds = rays.step(r);
     T acc = 0;
     const VoxelRay<T> ray = rays.voxels(g, r, ds);
-    for (int64_t i0 = 0; i0 < rays.samples; i0 += kChunk) {
+    T* dr = D ? D + r * K : nullptr;
+    if (dr) std::fill(dr, dr + K, T(0));
+    for (int64_t i0 = 0; i0 < K; i0 += kChunk) {
       int n = 0;
-      for (int64_t i = i0; i < std::min<int64_t>(rays.samples, i0 + kChunk); ++i) {
-        if (locate(g, ray, i, c)) f[n++] = interpolate(g, c);
+      for (int64_t i = i0; i < std::min<int64_t>(K, i0 + kChunk); ++i) {
+        if (locate(g, ray, i, c)) {
+          idx[n] = static_cast<int>(i - i0);
+          f[n++] = interpolate(g, c);
+        }
       }
       std::fill(f + n, f + kChunk, T(0));  // whole vectors: no uninitialised lanes
-      softplus_block(f, n);
+      if (dr) {
+        softplus_keep_block(f, fd, n);
+        for (int j = 0; j < n; ++j) dr[i0 + idx[j]] = fd[j];
+      } else {
+        softplus_block(f, n);
+      }
       for (int j = 0; j < n; ++j) acc += f[j];
     }
     S[r] = acc * ds;
@@ -277,43 +316,73 @@ NIMBUS_INLINE void backward_rays(const Grid<T>& g, const Rays<T>& rays, const T*
   }
 }
 
-// float32 runs the AVX2 clone where the CPU has it: the same operations (no FMA contraction), wider.
-void forward_rays_generic(const Grid<float>& g, const Rays<float>& rays, int64_t b, int64_t e, float* S) {
-  forward_rays(g, rays, b, e, S);
+// The same sums as backward_rays, with each sample's softplus' read from the forward's D [P, K].
+template <typename T>
+NIMBUS_INLINE void backward_rays_kept(const Grid<T>& g, const Rays<T>& rays, const T* gS, const T* D, int64_t b,
+                                      int64_t e, T* acc) {
+  Cell<T> c;
+  const int64_t K = rays.samples;
+  for (int64_t r = b; r < e; ++r) {
+    const T ds = rays.step(r);
+    const T coef = gS[r] * ds;
+    if (coef == T(0)) continue;
+    const VoxelRay<T> ray = rays.voxels(g, r, ds);
+    const T* dr = D + r * K;
+    for (int64_t i = 0; i < K; ++i) {
+      if (locate(g, ray, i, c)) scatter(g, c, coef * dr[i], acc);
+    }
+  }
 }
-void backward_rays_generic(const Grid<float>& g, const Rays<float>& rays, const float* gS, int64_t b, int64_t e,
-                           float* acc) {
-  backward_rays(g, rays, gS, b, e, acc);
+
+// Backward with the forward's softplus' (D) when given, else evaluating every sample again.
+template <typename T>
+NIMBUS_INLINE void backward_any(const Grid<T>& g, const Rays<T>& rays, const T* gS, const T* D, int64_t b, int64_t e,
+                                T* acc) {
+  if (D) {
+    backward_rays_kept(g, rays, gS, D, b, e, acc);
+  } else {
+    backward_rays(g, rays, gS, b, e, acc);
+  }
+}
+
+// float32 runs the AVX2 clone where the CPU has it: the same operations (no FMA contraction), wider.
+void forward_rays_generic(const Grid<float>& g, const Rays<float>& rays, int64_t b, int64_t e, float* S, float* D) {
+  forward_rays(g, rays, b, e, S, D);
+}
+void backward_rays_generic(const Grid<float>& g, const Rays<float>& rays, const float* gS, const float* D, int64_t b,
+                           int64_t e, float* acc) {
+  backward_any(g, rays, gS, D, b, e, acc);
 }
 #ifdef NIMBUS_HAS_AVX2_CLONE
 NIMBUS_TARGET_AVX2 void forward_rays_avx2(const Grid<float>& g, const Rays<float>& rays, int64_t b, int64_t e,
-                                          float* S) {
-  forward_rays(g, rays, b, e, S);
+                                          float* S, float* D) {
+  forward_rays(g, rays, b, e, S, D);
 }
-NIMBUS_TARGET_AVX2 void backward_rays_avx2(const Grid<float>& g, const Rays<float>& rays, const float* gS, int64_t b,
-                                           int64_t e, float* acc) {
-  backward_rays(g, rays, gS, b, e, acc);
+NIMBUS_TARGET_AVX2 void backward_rays_avx2(const Grid<float>& g, const Rays<float>& rays, const float* gS,
+                                           const float* D, int64_t b, int64_t e, float* acc) {
+  backward_any(g, rays, gS, D, b, e, acc);
 }
 #endif
 
-void run_forward(const Grid<float>& g, const Rays<float>& rays, int64_t b, int64_t e, float* S) {
+void run_forward(const Grid<float>& g, const Rays<float>& rays, int64_t b, int64_t e, float* S, float* D) {
 #ifdef NIMBUS_HAS_AVX2_CLONE
-  if (cpu_has_avx2()) return forward_rays_avx2(g, rays, b, e, S);
+  if (cpu_has_avx2()) return forward_rays_avx2(g, rays, b, e, S, D);
 #endif
-  forward_rays_generic(g, rays, b, e, S);
+  forward_rays_generic(g, rays, b, e, S, D);
 }
-void run_forward(const Grid<double>& g, const Rays<double>& rays, int64_t b, int64_t e, double* S) {
-  forward_rays(g, rays, b, e, S);
+void run_forward(const Grid<double>& g, const Rays<double>& rays, int64_t b, int64_t e, double* S, double* D) {
+  forward_rays(g, rays, b, e, S, D);
 }
-void run_backward(const Grid<float>& g, const Rays<float>& rays, const float* gS, int64_t b, int64_t e, float* acc) {
+void run_backward(const Grid<float>& g, const Rays<float>& rays, const float* gS, const float* D, int64_t b, int64_t e,
+                  float* acc) {
 #ifdef NIMBUS_HAS_AVX2_CLONE
-  if (cpu_has_avx2()) return backward_rays_avx2(g, rays, gS, b, e, acc);
+  if (cpu_has_avx2()) return backward_rays_avx2(g, rays, gS, D, b, e, acc);
 #endif
-  backward_rays_generic(g, rays, gS, b, e, acc);
+  backward_rays_generic(g, rays, gS, D, b, e, acc);
 }
-void run_backward(const Grid<double>& g, const Rays<double>& rays, const double* gS, int64_t b, int64_t e,
-                  double* acc) {
-  backward_rays(g, rays, gS, b, e, acc);
+void run_backward(const Grid<double>& g, const Rays<double>& rays, const double* gS, const double* D, int64_t b,
+                  int64_t e, double* acc) {
+  backward_any(g, rays, gS, D, b, e, acc);
 }
 
 void check_inputs(const at::Tensor& features, const at::Tensor& origin, const at::Tensor& dirs,
@@ -333,33 +402,59 @@ void check_inputs(const at::Tensor& features, const at::Tensor& origin, const at
   }
 }
 
-at::Tensor march_forward(const at::Tensor& features, const at::Tensor& origin, const at::Tensor& dirs,
-                         const at::Tensor& t_start, const at::Tensor& t_end, const at::Tensor& lo,
-                         const at::Tensor& hi, int64_t samples) {
+// S [P], and with keep the samples' softplus' D [P, K] (an undefined tensor without).
+std::tuple<at::Tensor, at::Tensor> forward_impl(const at::Tensor& features, const at::Tensor& origin,
+                                                const at::Tensor& dirs, const at::Tensor& t_start,
+                                                const at::Tensor& t_end, const at::Tensor& lo, const at::Tensor& hi,
+                                                int64_t samples, bool keep) {
   check_inputs(features, origin, dirs, t_start, t_end, lo, hi, samples);
   const int64_t P = dirs.size(0);
   at::Tensor out = at::empty({P}, dirs.options());
+  at::Tensor kept = keep ? at::empty({P, samples}, dirs.options()) : at::Tensor();
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "march_forward", [&] {
     using T = scalar_t;
     const Grid<T> g = make_grid<T>(features, lo, hi);
     const Rays<T> rays(origin, dirs, t_start, t_end, samples);
     T* S = out.data_ptr<T>();
+    T* D = keep ? kept.data_ptr<T>() : nullptr;
     nimbus_interrupt::Interrupt interrupt;
     const int64_t block = std::max<int64_t>(1, kSamplesPerPoll / samples);
     at::parallel_for(0, P, kForwardGrain, [&](int64_t b, int64_t e) {
-      for (int64_t r = b; r < e && !interrupt.stop(); r += block) run_forward(g, rays, r, std::min(e, r + block), S);
+      for (int64_t r = b; r < e && !interrupt.stop(); r += block) {
+        run_forward(g, rays, r, std::min(e, r + block), S, D);
+      }
     });
   });
-  return out;
+  return {out, kept};
 }
 
-at::Tensor march_backward(const at::Tensor& features, const at::Tensor& origin, const at::Tensor& dirs,
-                          const at::Tensor& t_start, const at::Tensor& t_end, const at::Tensor& lo,
-                          const at::Tensor& hi, int64_t samples, const at::Tensor& grad_out) {
+at::Tensor march_forward(const at::Tensor& features, const at::Tensor& origin, const at::Tensor& dirs,
+                         const at::Tensor& t_start, const at::Tensor& t_end, const at::Tensor& lo,
+                         const at::Tensor& hi, int64_t samples) {
+  return std::get<0>(forward_impl(features, origin, dirs, t_start, t_end, lo, hi, samples, false));
+}
+
+// (S [P], D [P, K]): the forward of a march that will be differentiated with march_backward_kept.
+std::tuple<at::Tensor, at::Tensor> march_forward_keep(const at::Tensor& features, const at::Tensor& origin,
+                                                      const at::Tensor& dirs, const at::Tensor& t_start,
+                                                      const at::Tensor& t_end, const at::Tensor& lo,
+                                                      const at::Tensor& hi, int64_t samples) {
+  return forward_impl(features, origin, dirs, t_start, t_end, lo, hi, samples, true);
+}
+
+// dS/dfeatures weighted by grad_out; with kept (march_forward_keep's D) defined, no sample is evaluated again.
+at::Tensor backward_impl(const at::Tensor& features, const at::Tensor& origin, const at::Tensor& dirs,
+                         const at::Tensor& t_start, const at::Tensor& t_end, const at::Tensor& lo,
+                         const at::Tensor& hi, int64_t samples, const at::Tensor& kept, const at::Tensor& grad_out) {
   check_inputs(features, origin, dirs, t_start, t_end, lo, hi, samples);
   const int64_t P = dirs.size(0);
   TORCH_CHECK(grad_out.numel() == P && grad_out.is_contiguous() && grad_out.scalar_type() == features.scalar_type(),
               "grad_out must be a contiguous [P] tensor of the features' dtype");
+  if (kept.defined()) {
+    TORCH_CHECK(kept.numel() == P * samples && kept.is_contiguous() && kept.device().is_cpu() &&
+                    kept.scalar_type() == features.scalar_type(),
+                "kept must be march_forward_keep's contiguous [P, samples] tensor of the features' dtype");
+  }
   at::Tensor grad = at::zeros(features.sizes(), features.options());
   const int64_t V = features.numel();
   const int64_t parts = std::max<int64_t>(1, std::min<int64_t>(kMaxParts, P / kMinRaysPerPart));
@@ -368,6 +463,7 @@ at::Tensor march_backward(const at::Tensor& features, const at::Tensor& origin, 
     const Grid<T> g = make_grid<T>(features, lo, hi);
     const Rays<T> rays(origin, dirs, t_start, t_end, samples);
     const T* gS = grad_out.data_ptr<T>();
+    const T* D = kept.defined() ? kept.data_ptr<T>() : nullptr;
     T* out = grad.data_ptr<T>();
     // Part 0 writes into the result; the others into their own grids, zeroed by their owner.
     std::unique_ptr<T[]> extra(parts > 1 ? new T[(parts - 1) * V] : nullptr);
@@ -380,7 +476,7 @@ at::Tensor march_backward(const at::Tensor& features, const at::Tensor& origin, 
         // In ray order, block by block: the same sums as one call over the part.
         const int64_t end = P * (w + 1) / parts;
         for (int64_t r = P * w / parts; r < end && !interrupt.stop(); r += block) {
-          run_backward(g, rays, gS, r, std::min(end, r + block), acc);
+          run_backward(g, rays, gS, D, r, std::min(end, r + block), acc);
         }
       }
     };
@@ -399,10 +495,219 @@ at::Tensor march_backward(const at::Tensor& features, const at::Tensor& origin, 
   return grad;
 }
 
+at::Tensor march_backward(const at::Tensor& features, const at::Tensor& origin, const at::Tensor& dirs,
+                          const at::Tensor& t_start, const at::Tensor& t_end, const at::Tensor& lo,
+                          const at::Tensor& hi, int64_t samples, const at::Tensor& grad_out) {
+  return backward_impl(features, origin, dirs, t_start, t_end, lo, hi, samples, at::Tensor(), grad_out);
+}
+
+at::Tensor march_backward_kept(const at::Tensor& features, const at::Tensor& origin, const at::Tensor& dirs,
+                               const at::Tensor& t_start, const at::Tensor& t_end, const at::Tensor& lo,
+                               const at::Tensor& hi, int64_t samples, const at::Tensor& kept,
+                               const at::Tensor& grad_out) {
+  return backward_impl(features, origin, dirs, t_start, t_end, lo, hi, samples, kept, grad_out);
+}
+
+// ---------------------------------------------------------------------------------------------
+// L_TV of the grid (ExtinctionGrid.tv without its scale): sum over the axes of mean |forward
+// difference| of softplus(features), and its gradient.  torch evaluates it as a dozen passes over
+// the grid (softplus, three diffs, abs, means and their backward); here one pass computes
+// softplus and softplus' and one more the sums (or the gradient).  Per-slice partial sums are
+// added in slice order, so the value is the same bits for any thread count; each voxel's gradient
+// is computed from its neighbours alone.  |x|'s derivative at 0 is 0, as torch's.
+
+// softplus and softplus' of n values, any n, through softplus_keep_block in whole chunks.
+template <typename T>
+NIMBUS_INLINE void softplus_values(const T* f, T* sp, T* sig, int64_t n) {
+  T x[kChunk], d[kChunk];
+  for (int64_t i0 = 0; i0 < n; i0 += kChunk) {
+    const int m = static_cast<int>(std::min<int64_t>(kChunk, n - i0));
+    std::copy(f + i0, f + i0 + m, x);
+    std::fill(x + m, x + kChunk, T(0));
+    softplus_keep_block(x, d, m);
+    std::copy(x, x + m, sp + i0);
+    std::copy(d, d + m, sig + i0);
+  }
+}
+void softplus_values_generic(const float* f, float* sp, float* sig, int64_t n) { softplus_values(f, sp, sig, n); }
+#ifdef NIMBUS_HAS_AVX2_CLONE
+NIMBUS_TARGET_AVX2 void softplus_values_avx2(const float* f, float* sp, float* sig, int64_t n) {
+  softplus_values(f, sp, sig, n);
+}
+#endif
+void run_softplus(const float* f, float* sp, float* sig, int64_t n) {
+#ifdef NIMBUS_HAS_AVX2_CLONE
+  if (cpu_has_avx2()) return softplus_values_avx2(f, sp, sig, n);
+#endif
+  softplus_values_generic(f, sp, sig, n);
+}
+void run_softplus(const double* f, double* sp, double* sig, int64_t n) { softplus_values(f, sp, sig, n); }
+
+struct TVShape {
+  int64_t Z, Y, X;
+  int64_t slice() const { return Y * X; }
+};
+
+TVShape tv_shape(const at::Tensor& features) {
+  TORCH_CHECK(features.dim() == 3 && features.size(0) >= 2 && features.size(1) >= 2 && features.size(2) >= 2,
+              "features must be [Z, Y, X] with every side >= 2");
+  TORCH_CHECK(features.device().is_cpu() && features.is_contiguous(), "grid TV: a contiguous CPU tensor expected");
+  return TVShape{features.size(0), features.size(1), features.size(2)};
+}
+
+// softplus (sp) and softplus' (sig) of every voxel, slices in parallel.
+template <typename T>
+void softplus_grid(const T* f, T* sp, T* sig, const TVShape& s) {
+  at::parallel_for(0, s.Z, 1, [&](int64_t b, int64_t e) {
+    run_softplus(f + b * s.slice(), sp + b * s.slice(), sig + b * s.slice(), (e - b) * s.slice());
+  });
+}
+
+// sum |b[i] - a[i]| over n values, in kLanes running sums (vectorised; a fixed order) added in lane order.
+template <typename T>
+NIMBUS_INLINE T abs_diff_sum(const T* a, const T* b, int64_t n) {
+  T acc[kLanes] = {};
+  int64_t i = 0;
+  for (; i + kLanes <= n; i += kLanes) {
+    for (int l = 0; l < kLanes; ++l) acc[l] += std::abs(b[i + l] - a[i + l]);
+  }
+  T sum = 0;
+  for (int l = 0; l < kLanes; ++l) sum += acc[l];
+  for (; i < n; ++i) sum += std::abs(b[i] - a[i]);
+  return sum;
+}
+
+// The x, y and z (to the next slice) sums of slice z.
+template <typename T>
+NIMBUS_INLINE void tv_slice_sums(const T* sp, const TVShape& s, int64_t z, T* out) {
+  const T* a = sp + z * s.slice();
+  T sx = 0;
+  for (int64_t y = 0; y < s.Y; ++y) sx += abs_diff_sum(a + y * s.X, a + y * s.X + 1, s.X - 1);
+  out[0] = sx;
+  out[1] = abs_diff_sum(a, a + s.X, (s.Y - 1) * s.X);
+  out[2] = z + 1 < s.Z ? abs_diff_sum(a, a + s.slice(), s.slice()) : T(0);
+}
+
+template <typename T>
+NIMBUS_INLINE T sgn(T v) {
+  return (v > T(0) ? T(1) : T(0)) - (v < T(0) ? T(1) : T(0));
+}
+
+// The gradient of slice z (w: the three axes' weights, grad / count); t is scratch of X values.
+template <typename T>
+NIMBUS_INLINE void tv_slice_grad(const T* sp, const T* sig, const TVShape& s, int64_t z, const T* w, T* t, T* out) {
+  const int64_t X = s.X, S = s.slice();
+  const T* a = sp + z * S;
+  T* o = out + z * S;
+  for (int64_t y = 0; y < s.Y; ++y) {  // x: o[x] = t[x - 1] - t[x], t[x] = w sgn(a[x + 1] - a[x])
+    const T* row = a + y * X;
+    T* orow = o + y * X;
+    for (int64_t x = 0; x + 1 < X; ++x) t[x] = w[0] * sgn(row[x + 1] - row[x]);
+    orow[0] = -t[0];
+    for (int64_t x = 1; x + 1 < X; ++x) orow[x] = t[x - 1] - t[x];
+    orow[X - 1] = t[X - 2];
+  }
+  for (int64_t y = 0; y + 1 < s.Y; ++y) {  // y: the difference between rows y and y + 1
+    const T* r0 = a + y * X;
+    T* o0 = o + y * X;
+    for (int64_t x = 0; x < X; ++x) {
+      const T d = w[1] * sgn(r0[x + X] - r0[x]);
+      o0[x] -= d;
+      o0[x + X] += d;
+    }
+  }
+  if (z > 0) {
+    for (int64_t v = 0; v < S; ++v) o[v] += w[2] * sgn(a[v] - a[v - S]);
+  }
+  if (z + 1 < s.Z) {
+    for (int64_t v = 0; v < S; ++v) o[v] -= w[2] * sgn(a[v + S] - a[v]);
+  }
+  for (int64_t v = 0; v < S; ++v) o[v] *= sig[z * S + v];
+}
+
+void tv_slice_sums_generic(const float* sp, const TVShape& s, int64_t z, float* out) { tv_slice_sums(sp, s, z, out); }
+void tv_slice_grad_generic(const float* sp, const float* sig, const TVShape& s, int64_t z, const float* w, float* t,
+                           float* out) {
+  tv_slice_grad(sp, sig, s, z, w, t, out);
+}
+#ifdef NIMBUS_HAS_AVX2_CLONE
+NIMBUS_TARGET_AVX2 void tv_slice_sums_avx2(const float* sp, const TVShape& s, int64_t z, float* out) {
+  tv_slice_sums(sp, s, z, out);
+}
+NIMBUS_TARGET_AVX2 void tv_slice_grad_avx2(const float* sp, const float* sig, const TVShape& s, int64_t z,
+                                           const float* w, float* t, float* out) {
+  tv_slice_grad(sp, sig, s, z, w, t, out);
+}
+#endif
+void run_tv_sums(const float* sp, const TVShape& s, int64_t z, float* out) {
+#ifdef NIMBUS_HAS_AVX2_CLONE
+  if (cpu_has_avx2()) return tv_slice_sums_avx2(sp, s, z, out);
+#endif
+  tv_slice_sums_generic(sp, s, z, out);
+}
+void run_tv_sums(const double* sp, const TVShape& s, int64_t z, double* out) { tv_slice_sums(sp, s, z, out); }
+void run_tv_grad(const float* sp, const float* sig, const TVShape& s, int64_t z, const float* w, float* t, float* out) {
+#ifdef NIMBUS_HAS_AVX2_CLONE
+  if (cpu_has_avx2()) return tv_slice_grad_avx2(sp, sig, s, z, w, t, out);
+#endif
+  tv_slice_grad_generic(sp, sig, s, z, w, t, out);
+}
+void run_tv_grad(const double* sp, const double* sig, const TVShape& s, int64_t z, const double* w, double* t,
+                 double* out) {
+  tv_slice_grad(sp, sig, s, z, w, t, out);
+}
+
+// (the sum over the axes of mean |forward difference of softplus(features)| (0-d), softplus(features),
+// softplus'(features)): the last two for grid_tv_backward.
+std::tuple<at::Tensor, at::Tensor, at::Tensor> grid_tv(const at::Tensor& features) {
+  const TVShape s = tv_shape(features);
+  at::Tensor out = at::empty({}, features.options());
+  at::Tensor sp = at::empty(features.sizes(), features.options()), sig = at::empty(features.sizes(), features.options());
+  AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "grid_tv", [&] {
+    using T = scalar_t;
+    T* a = sp.data_ptr<T>();
+    softplus_grid(features.data_ptr<T>(), a, sig.data_ptr<T>(), s);
+    std::vector<T> part(3 * s.Z);  // per slice: the x, y and z sums
+    at::parallel_for(0, s.Z, 1, [&](int64_t b, int64_t e) {
+      for (int64_t z = b; z < e; ++z) run_tv_sums(a, s, z, part.data() + 3 * z);
+    });
+    T sx = 0, sy = 0, sz = 0;
+    for (int64_t z = 0; z < s.Z; ++z) sx += part[3 * z], sy += part[3 * z + 1], sz += part[3 * z + 2];
+    const T nx = T(s.Z * s.Y * (s.X - 1)), ny = T(s.Z * (s.Y - 1) * s.X), nz = T((s.Z - 1) * s.Y * s.X);
+    out.fill_(sx / nx + sy / ny + sz / nz);
+  });
+  return {out, sp, sig};
+}
+
+// d grid_tv / d features times grad (a 0-d tensor), from grid_tv's softplus and softplus'.
+at::Tensor grid_tv_backward(const at::Tensor& sp, const at::Tensor& sig, const at::Tensor& grad) {
+  const TVShape s = tv_shape(sp);
+  TORCH_CHECK(grad.numel() == 1, "grad must hold one value");
+  TORCH_CHECK(sig.sizes() == sp.sizes() && sig.is_contiguous() && sig.scalar_type() == sp.scalar_type(),
+              "sig must be grid_tv's softplus' of the same grid");
+  at::Tensor out = at::empty(sp.sizes(), sp.options());
+  AT_DISPATCH_FLOATING_TYPES(sp.scalar_type(), "grid_tv_backward", [&] {
+    using T = scalar_t;
+    const T g = grad.to(sp.scalar_type()).item<T>();
+    const T w[3] = {g / T(s.Z * s.Y * (s.X - 1)), g / T(s.Z * (s.Y - 1) * s.X), g / T((s.Z - 1) * s.Y * s.X)};
+    T* o = out.data_ptr<T>();
+    const T *a = sp.data_ptr<T>(), *d = sig.data_ptr<T>();
+    at::parallel_for(0, s.Z, 1, [&](int64_t b, int64_t e) {
+      std::vector<T> t(s.X);
+      for (int64_t z = b; z < e; ++z) run_tv_grad(a, d, s, z, w, t.data(), o);
+    });
+  });
+  return out;
+}
+
 }  // namespace
 }  // namespace nimbus_march
 
 TORCH_LIBRARY(nimbus_march, m) {
   m.def("march_forward", &nimbus_march::march_forward);
   m.def("march_backward", &nimbus_march::march_backward);
+  m.def("march_forward_keep", &nimbus_march::march_forward_keep);
+  m.def("march_backward_kept", &nimbus_march::march_backward_kept);
+  m.def("grid_tv", &nimbus_march::grid_tv);
+  m.def("grid_tv_backward", &nimbus_march::grid_tv_backward);
 }
