@@ -6,12 +6,13 @@ import math
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from nimbus.config_set import apply_overrides
 from nimbus.data.camera import Camera
 from nimbus.errors import NimbusError
-from nimbus.methods.nimbusgs.airlight import (ConstantAirlight, NetworkAirlight, SHAirlight, estimate_airlight,
-                                      view_descriptor)
+from nimbus.methods.nimbusgs.airlight import (ConstantAirlight, NetworkAirlight, SHAirlight, dark_channel_window,
+                                      estimate_airlight, view_descriptor, window_min)
 from nimbus.methods.nimbusgs.auto import haze_evidence, particle_evidence, particle_thresholds, residual_tail_counts
 from nimbus.methods.nimbusgs.config import NimbusConfig, paper_m_init, parse_components, preset
 from nimbus.methods.nimbusgs.ggs import (GGSFactors, ggs_weights, lower_median, robust_normalise, sample_error,
@@ -451,6 +452,23 @@ def test_ggs_scales_gradient_rows_and_samples_error_at_pixel_centres():
 
 
 # --- losses and restoration ---------------------------------------------------------------
+@pytest.mark.parametrize("patch", [1, 4, 7, 11, 40])  # even, odd, and wider than the 9 x 13 image
+def test_window_min_is_the_square_minimum_filter_in_value_and_gradient(patch):
+    """window_min runs the dark channel's square minimum as a column pass and a row pass; on an image without
+    ties both pick the same pixel, so the values equal max_pool2d's over the square window, and so does the gradient
+    up to the order in which a pixel that is the minimum of several windows sums their gradients."""
+    x = torch.rand(9, 13, generator=torch.Generator().manual_seed(patch), requires_grad=True)
+    weights = torch.rand(9, 13, generator=torch.Generator().manual_seed(99))
+    got = window_min(x, patch)
+    p = dark_channel_window(patch, 9, 13)
+    want = -F.max_pool2d(-x[None, None], p, stride=1, padding=p // 2)[0, 0, :9, :13]
+    assert torch.equal(got, want)
+    (g_got,) = torch.autograd.grad((got * weights).sum(), x)
+    (g_want,) = torch.autograd.grad((want * weights).sum(), x)
+    torch.testing.assert_close(g_got, g_want, rtol=1e-6, atol=1e-6)
+    assert torch.equal(g_got != 0, g_want != 0) and float(g_got.abs().sum()) > 0  # the same pixels
+
+
 def test_dark_channel_loss():
     img = torch.full((9, 9, 3), 0.6)
     assert float(dcp_loss(img, 3, 0.1)) == pytest.approx(0.6)

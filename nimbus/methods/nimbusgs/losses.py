@@ -6,11 +6,10 @@ L_TV lives with the extinction field (:meth:`nimbus.methods.nimbusgs.scattering.
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from nimbus.losses import photometric_loss
-from nimbus.methods.nimbusgs.airlight import dark_channel_window
+from nimbus.methods.nimbusgs.airlight import window_min
 
 
 def soft_dark_channel(image: Tensor, patch: int, temperature: float) -> Tensor:
@@ -26,9 +25,7 @@ def soft_dark_channel(image: Tensor, patch: int, temperature: float) -> Tensor:
         m = (w * image).sum(dim=-1)
     else:
         m = image.min(dim=-1).values
-    h, w_ = m.shape
-    patch = dark_channel_window(patch, h, w_)
-    return -F.max_pool2d(-m[None, None], patch, stride=1, padding=patch // 2)[0, 0, :h, :w_]
+    return window_min(m, patch)
 
 
 DCP_FORMS = ("l1", "squared")
