@@ -8,7 +8,10 @@ the K uniform samples of
 :func:`nimbus.methods.nimbusgs.scattering.march`, without materialising the ``[P, K, 3]``
 sample points; the optical depth is ``tau = S * exp(log_scale)``.  Gradients flow to
 the grid features (and, through the product, to ``log_scale``), not to the rays or
-their intervals: :func:`usable` says when the kernel applies.
+their intervals: :func:`usable` says when the kernel applies.  A march that will be
+differentiated keeps each sample's softplus' from its forward ([P, K], 4 bytes a sample), so its
+backward only locates the samples and scatters into the grid.  The same library holds
+:func:`grid_tv`, the extinction grid's L_TV in one pass.
 """
 
 from __future__ import annotations
