@@ -35,6 +35,7 @@
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
+#include <ATen/ops/empty_like.h>
 #include <ATen/ops/zeros.h>
 #include <c10/util/Exception.h>
 #include <torch/library.h>
@@ -171,8 +172,14 @@ NIMBUS_INLINE void scatter(const Grid<T>& g, const Cell<T>& c, T value, T* out) 
 // softplus and its derivative (as torch's softplus_backward computes it) over a block
 // of n feature values, in place.  float32 runs kLanes at a time with a polynomial exp
 // and log1p (below); float64 (gradcheck, tests) calls std::exp / std::log1p.
-NIMBUS_INLINE void softplus_block(double* x, int n) {
-  for (int j = 0; j < n; ++j) x[j] = x[j] > kSoftplusThreshold ? x[j] : std::log1p(std::exp(x[j]));
+// With d, softplus' goes there too, from the same exp (the numbers softplus_grad_block gives).
+NIMBUS_INLINE void softplus_block(double* x, int n, double* d = nullptr) {
+  for (int j = 0; j < n; ++j) {
+    const bool above = x[j] > kSoftplusThreshold;
+    const double z = std::exp(x[j]);
+    if (d) d[j] = above ? 1.0 : z / (z + 1.0);
+    x[j] = above ? x[j] : std::log1p(z);
+  }
 }
 NIMBUS_INLINE void softplus_grad_block(double* x, int n) {
   for (int j = 0; j < n; ++j) {
@@ -198,14 +205,20 @@ NIMBUS_INLINE VecF log1p_unit(VecF u) {
   return 2.0f * (s + s * s2 * p);
 }
 
-// softplus(x) = max(x, 0) + log1p(exp(-|x|)); x above the threshold is kept as it is.
-NIMBUS_INLINE void softplus_block(float* x, int n) {
+// softplus(x) = max(x, 0) + log1p(exp(-|x|)); x above the threshold is kept as it is.  With d,
+// softplus' = sigmoid goes there too, from the same e = exp(-|x|) (medium.h's sigmoid, and
+// softplus_grad_block's numbers).
+NIMBUS_INLINE void softplus_block(float* x, int n, float* d = nullptr) {
   for (int j = 0; j < n; j += kLanes) {
-    VecF v = load<VecF>(x + j);
+    const VecF v = load<VecF>(x + j);
     const VecF a = select(v < 0.0f, -v, v);
-    const VecF sp = select(v > 0.0f, v, splat(0.0f)) + log1p_unit(exp_nonpositive(-a));
-    v = select(v > float(kSoftplusThreshold), v, sp);
-    store(x + j, v);
+    const VecF e = exp_nonpositive(-a);
+    const VecF sp = select(v > 0.0f, v, splat(0.0f)) + log1p_unit(e);
+    if (d) {
+      const VecF sig = select(v >= 0.0f, splat(1.0f), e) / (e + 1.0f);
+      store(d + j, select(v > float(kSoftplusThreshold), splat(1.0f), sig));
+    }
+    store(x + j, select(v > float(kSoftplusThreshold), v, sp));
   }
 }
 
@@ -214,27 +227,6 @@ NIMBUS_INLINE void softplus_grad_block(float* x, int n) {
   for (int j = 0; j < n; j += kLanes) {
     const VecF v = load<VecF>(x + j);
     store(x + j, select(v > float(kSoftplusThreshold), splat(1.0f), sigmoid(v)));
-  }
-}
-
-// softplus of n values in place and its derivative in d, from one exp per value: the same numbers as
-// softplus_block followed by softplus_grad_block on a copy.
-NIMBUS_INLINE void softplus_keep_block(double* x, double* d, int n) {
-  for (int j = 0; j < n; ++j) {
-    const double z = std::exp(x[j]);
-    d[j] = x[j] > kSoftplusThreshold ? 1.0 : z / (z + 1.0);
-    x[j] = x[j] > kSoftplusThreshold ? x[j] : std::log1p(std::exp(x[j]));
-  }
-}
-NIMBUS_INLINE void softplus_keep_block(float* x, float* d, int n) {
-  for (int j = 0; j < n; j += kLanes) {
-    VecF v = load<VecF>(x + j);
-    const VecF a = select(v < 0.0f, -v, v);
-    const VecF e = exp_nonpositive(-a);
-    const VecF sp = select(v > 0.0f, v, splat(0.0f)) + log1p_unit(e);
-    const VecF sig = select(v >= 0.0f, splat(1.0f), e) / (e + 1.0f);  // sigmoid (medium.h) on the same e
-    store(d + j, select(v > float(kSoftplusThreshold), splat(1.0f), sig));
-    store(x + j, select(v > float(kSoftplusThreshold), v, sp));
   }
 }
 
@@ -280,7 +272,7 @@ NIMBUS_INLINE void forward_rays(const Grid<T>& g, const Rays<T>& rays, int64_t b
       }
       std::fill(f + n, f + kChunk, T(0));  // whole vectors: no uninitialised lanes
       if (dr) {
-        softplus_keep_block(f, fd, n);
+        softplus_block(f, n, fd);
         for (int j = 0; j < n; ++j) dr[i0 + idx[j]] = fd[j];
       } else {
         softplus_block(f, n);
@@ -516,7 +508,7 @@ at::Tensor march_backward_kept(const at::Tensor& features, const at::Tensor& ori
 // added in slice order, so the value is the same bits for any thread count; each voxel's gradient
 // is computed from its neighbours alone.  |x|'s derivative at 0 is 0, as torch's.
 
-// softplus and softplus' of n values, any n, through softplus_keep_block in whole chunks.
+// softplus and softplus' of n values, any n, through softplus_block in whole chunks.
 template <typename T>
 NIMBUS_INLINE void softplus_values(const T* f, T* sp, T* sig, int64_t n) {
   T x[kChunk], d[kChunk];
@@ -524,7 +516,7 @@ NIMBUS_INLINE void softplus_values(const T* f, T* sp, T* sig, int64_t n) {
     const int m = static_cast<int>(std::min<int64_t>(kChunk, n - i0));
     std::copy(f + i0, f + i0 + m, x);
     std::fill(x + m, x + kChunk, T(0));
-    softplus_keep_block(x, d, m);
+    softplus_block(x, m, d);
     std::copy(x, x + m, sp + i0);
     std::copy(d, d + m, sig + i0);
   }
@@ -662,7 +654,8 @@ void run_tv_grad(const double* sp, const double* sig, const TVShape& s, int64_t 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> grid_tv(const at::Tensor& features) {
   const TVShape s = tv_shape(features);
   at::Tensor out = at::empty({}, features.options());
-  at::Tensor sp = at::empty(features.sizes(), features.options()), sig = at::empty(features.sizes(), features.options());
+  at::Tensor sp = at::empty(features.sizes(), features.options());
+  at::Tensor sig = at::empty_like(sp);
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "grid_tv", [&] {
     using T = scalar_t;
     T* a = sp.data_ptr<T>();
