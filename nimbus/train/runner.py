@@ -55,7 +55,7 @@ from nimbus.train.run_folder import (config_from_record, config_record, load_sce
                                      scene_input_folder)
 from nimbus.train.views import view_mask
 from nimbus.utils.fs import atomic_write_json, atomic_write_text, refuse_overlap, write_problem
-from nimbus.utils.memory import peak_rss_mb, reused_heap
+from nimbus.utils.memory import peak_rss_mb
 from nimbus.versions import software_versions
 
 LOG = "train_log.jsonl"
@@ -242,54 +242,52 @@ class Runner:
         loss_ema = psnr_ema = None
         start = time.perf_counter()
         time_offset = self.train_time
-        # Large blocks reused from malloc's heap, not mapped afresh each step (nimbus.utils.memory).
-        with reused_heap(self.device.type == "cpu"):
-            try:
-                while self.iteration < c.iterations:
-                    it = self.iteration + 1
-                    if self.method.num_gaussians == 0:
-                        self.save_checkpoint(LAST_GOOD)
-                        raise NimbusError(f"every Gaussian was pruned by iteration {it}; lower prune_opacity or "
-                                          "densify_grad_threshold (--set key=value), or check that the input views "
-                                          "are not blank")
-                    self._in_step = True
-                    try:
-                        step = self.method.train_iteration(it)
-                    except TrainingDiverged as e:
-                        kept = self._keep_last_good()
-                        if e.what == "loss":
-                            raise NimbusError(f"the loss became {e.value} at iteration {it}{kept}. Lower the learning "
-                                              "rates (--set lr_...=...) or check the input images") from None
-                        raise NimbusError(f"non-finite gradients at iteration {it}{kept}. Lower the learning rates or "
-                                          "check the inputs") from None
-                    self.iteration = it
-                    self._in_step = False
-                    self.visible_steps += bool(step["visible"])
-                    for kind, info in step["events"]:
-                        self.event(kind, **info)
-                    lv, pv = step["loss"], step["psnr"]
-                    loss_ema = lv if loss_ema is None else 0.9 * loss_ema + 0.1 * lv
-                    psnr_ema = pv if psnr_ema is None else 0.9 * psnr_ema + 0.1 * pv
-                    if it % c.log_interval == 0 or it == c.iterations:
-                        self.train_time = time_offset + time.perf_counter() - start
-                        n = self.method.num_gaussians
-                        self.log({"loss": round(loss_ema, 6), "psnr": round(psnr_ema, 3), "gaussians": n,
-                                  "elapsed_s": round(self.train_time, 3)})
-                        bar.set_postfix(loss=f"{loss_ema:.4f}", psnr=f"{psnr_ema:.2f}", gs=n)
-                    bar.update(1)
-                    if it % c.checkpoint_interval == 0 and it < c.iterations:
-                        self.train_time = time_offset + time.perf_counter() - start
-                        self.save_checkpoint()
-            except KeyboardInterrupt:
-                # Keep the progress so `--resume` continues from here (an interrupt inside an
-                # optimiser step may make the resumed run differ from an uninterrupted one by a step).
-                self.train_time = time_offset + time.perf_counter() - start
-                self.save_checkpoint()
-                print(f"interrupted at iteration {self.iteration}; continue with: nimbus-train --resume {self.out}",
-                      file=sys.stderr)
-                raise
-            finally:
-                bar.close()
+        try:
+            while self.iteration < c.iterations:
+                it = self.iteration + 1
+                if self.method.num_gaussians == 0:
+                    self.save_checkpoint(LAST_GOOD)
+                    raise NimbusError(f"every Gaussian was pruned by iteration {it}; lower prune_opacity or "
+                                      "densify_grad_threshold (--set key=value), or check that the input views "
+                                      "are not blank")
+                self._in_step = True
+                try:
+                    step = self.method.train_iteration(it)
+                except TrainingDiverged as e:
+                    kept = self._keep_last_good()
+                    if e.what == "loss":
+                        raise NimbusError(f"the loss became {e.value} at iteration {it}{kept}. Lower the learning "
+                                          "rates (--set lr_...=...) or check the input images") from None
+                    raise NimbusError(f"non-finite gradients at iteration {it}{kept}. Lower the learning rates or "
+                                      "check the inputs") from None
+                self.iteration = it
+                self._in_step = False
+                self.visible_steps += bool(step["visible"])
+                for kind, info in step["events"]:
+                    self.event(kind, **info)
+                lv, pv = step["loss"], step["psnr"]
+                loss_ema = lv if loss_ema is None else 0.9 * loss_ema + 0.1 * lv
+                psnr_ema = pv if psnr_ema is None else 0.9 * psnr_ema + 0.1 * pv
+                if it % c.log_interval == 0 or it == c.iterations:
+                    self.train_time = time_offset + time.perf_counter() - start
+                    n = self.method.num_gaussians
+                    self.log({"loss": round(loss_ema, 6), "psnr": round(psnr_ema, 3), "gaussians": n,
+                              "elapsed_s": round(self.train_time, 3)})
+                    bar.set_postfix(loss=f"{loss_ema:.4f}", psnr=f"{psnr_ema:.2f}", gs=n)
+                bar.update(1)
+                if it % c.checkpoint_interval == 0 and it < c.iterations:
+                    self.train_time = time_offset + time.perf_counter() - start
+                    self.save_checkpoint()
+        except KeyboardInterrupt:
+            # Keep the progress so `--resume` continues from here (an interrupt inside an
+            # optimiser step may make the resumed run differ from an uninterrupted one by a step).
+            self.train_time = time_offset + time.perf_counter() - start
+            self.save_checkpoint()
+            print(f"interrupted at iteration {self.iteration}; continue with: nimbus-train --resume {self.out}",
+                  file=sys.stderr)
+            raise
+        finally:
+            bar.close()
         self.train_time = time_offset + time.perf_counter() - start
         self.save_checkpoint()
         self.check_trained()

@@ -11,19 +11,6 @@ resident size, and no call resets it.  Writing ``5`` to ``/proc/self/clear_refs`
 ``VmHWM`` to the current resident size (Linux >= 4.0, proc(5)); a process that runs several
 jobs in turn (the benchmark's workers) does that before each one.
 
-Reused heap
------------
-A CPU training step frees and allocates the same large tensors every iteration: the gradients (the
-degree-3 colour coefficients' alone are 36 MB at 200k Gaussians), the compositor's per-intersection
-slots, the optimiser's temporaries.  glibc's malloc hands every block above its mmap threshold (at most
-32 MiB, usually far less) to the kernel and back, so each such block comes back as fresh pages that the
-kernel zeroes and maps one page fault at a time: about 15 ms per 36 MB on a 2-core EPYC, against 1 ms
-for the same bytes reused.  :func:`reused_heap` serves every allocation from malloc's own heap while a
-training loop runs (``mallopt``: no mmap'd blocks, no trimming), then gives the free memory back
-(``malloc_trim``).  The arithmetic is unchanged (only where the bytes live); the peak resident size
-can be a little higher, as freed blocks are reused rather than returned.  Set
-:data:`REUSED_HEAP_ENV` to ``0`` to keep the C library's defaults.
-
 Sizes
 -----
 A size-like setting (``ray_samples``, ``grid_resolution``, a tile size, a frame height) is checked before
@@ -36,14 +23,11 @@ hours.  The estimates are of the order of magnitude; they refuse what cannot fit
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
 import dataclasses
 import os
 import resource
-import threading
 from pathlib import Path
-from typing import Callable, Iterable, Iterator
+from typing import Callable, Iterable
 
 from nimbus.errors import NimbusError
 
@@ -82,57 +66,6 @@ def reset_peak_rss() -> bool:
     peak, now = status_kb("VmHWM"), status_kb("VmRSS")
     # Pages touched between the two reads may raise the mark a little above the first reading.
     return peak is not None and now is not None and peak <= now + 1024
-
-
-#: Environment variable: ``0`` keeps the C library's allocation defaults while training (:func:`reused_heap`).
-REUSED_HEAP_ENV = "NIMBUS_REUSED_HEAP"
-# glibc's mallopt parameters (malloc.h) and their defaults (mallopt(3)).
-_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
-_DEFAULT_TRIM_THRESHOLD, _DEFAULT_MMAP_MAX = 128 * 1024, 65536
-#: Freed memory kept at the top of the heap while a block runs (the most mallopt accepts: an int).
-_KEPT_TOP = 2**31 - 1
-_heap_lock = threading.Lock()
-_heap_users = 0
-
-
-def _glibc():
-    """This process's C library where it is glibc (it has ``mallopt`` and ``malloc_trim``), else None."""
-    try:
-        libc = ctypes.CDLL(None)
-        libc.gnu_get_libc_version  # noqa: B018 - raises AttributeError elsewhere (musl, macOS)
-        return libc
-    except (OSError, AttributeError):
-        return None
-
-
-@contextlib.contextmanager
-def reused_heap(enabled: bool = True) -> Iterator[bool]:
-    """While the block runs, glibc's malloc serves large blocks from its heap and keeps freed ones for reuse.
-
-    Yields whether the setting is in force: False where ``enabled`` is False, :data:`REUSED_HEAP_ENV` is
-    ``0``, or the C library is not glibc.  Nested and concurrent blocks share one setting; the last to
-    leave restores the defaults of mallopt(3) and gives the heap's free memory back to the system.
-    See the module docstring for why.
-    """
-    global _heap_users
-    libc = _glibc() if enabled and os.environ.get(REUSED_HEAP_ENV, "1").strip() != "0" else None
-    if libc is None:
-        yield False
-        return
-    with _heap_lock:
-        if _heap_users == 0:
-            libc.mallopt(_M_MMAP_MAX, 0)
-            libc.mallopt(_M_TRIM_THRESHOLD, _KEPT_TOP)
-        _heap_users += 1
-    try:
-        yield True
-    finally:
-        with _heap_lock:
-            _heap_users -= 1
-            if _heap_users == 0:
-                libc.mallopt(_M_MMAP_MAX, _DEFAULT_MMAP_MAX)
-                libc.mallopt(_M_TRIM_THRESHOLD, _DEFAULT_TRIM_THRESHOLD)
-                libc.malloc_trim(0)
 
 
 #: Environment variable: the memory, in GiB, run sizes are checked against instead of the device's.

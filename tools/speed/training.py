@@ -219,7 +219,6 @@ def time_method(method_name: str, scene, preset_name: str, iterations: int | Non
     from nimbus.config_set import apply_overrides, parse_set_args
     from nimbus.methods.registry import get_method
     from nimbus.train.runner import Runner
-    from nimbus.utils.memory import reused_heap
 
     torch.set_num_threads(threads)
     method_name, _, spec = method_name.partition(":")
@@ -233,8 +232,7 @@ def time_method(method_name: str, scene, preset_name: str, iterations: int | Non
     with tempfile.TemporaryDirectory(prefix="bench_training_") as out:
         method = Runner(method_name, scene, config, out, seed=0, progress=False, checkpoints=False).method
         probe = Probe(method.device)
-        # As Runner.train runs its steps (NIMBUS_REUSED_HEAP=0 times them without the reused heap).
-        with instrumented(method, probe), reused_heap(method.device.type == "cpu"):
+        with instrumented(method, probe):
             for step in range(1, min(config.iterations, steps or config.iterations) + 1):
                 if len(method.params) == 0:
                     break
@@ -343,8 +341,7 @@ def main(argv=None) -> int:
     specs = ([f"{args.scene}:{s}" for s in args.sizes] if args.scene.startswith(BUILTIN_PREFIX)
              and args.scene.count(":") == 1 else [args.scene])
     print(f"training iteration, preset {args.preset}, medians after {args.warmup} warm-up steps; "
-          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}; "
-          f"NIMBUS_REUSED_HEAP={os.environ.get('NIMBUS_REUSED_HEAP', 'unset')}; load average {_load()}\n", flush=True)
+          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}; load average {_load()}\n", flush=True)
     results: dict[tuple[str, int], dict] = {}
     for spec in specs:
         scene = load_scene_arg(spec)
