@@ -1,7 +1,7 @@
 """Compiled CPU ray march through an :class:`~nimbus.methods.nimbusgs.scattering.ExtinctionGrid` (forward and backward).
 
-NimbusGS's kernels (``csrc/march.cpp``, and ``csrc/airlight.cpp`` for
-:mod:`nimbus.kernels.airlight`) are their own library (:data:`EXTENSION`, built and
+NimbusGS's kernels (``csrc/march.cpp``, ``csrc/airlight.cpp`` for
+:mod:`nimbus.kernels.airlight` and ``csrc/consistency.cpp`` for :mod:`nimbus.kernels.consistency`) are their own library (:data:`EXTENSION`, built and
 cached by :class:`nimbus.kernels.extension.Extension`, apart from the rasterizer's).  The march
 computes, per ray, the softplus feature integral ``S = ds * sum_i softplus(f(x_i))`` over
 the K uniform samples of
@@ -24,9 +24,10 @@ from nimbus.kernels.extension import Extension
 
 __all__ = ["available", "usable", "grid_optical_depth", "grid_tv", "EXTENSION"]
 
-#: march.cpp (torch.ops.nimbus_march) and airlight.cpp (torch.ops.nimbus_airlight): one library, one build.
-EXTENSION = Extension("nimbus_march", ("march.cpp", "airlight.cpp"), kernel="ray-march kernel",
-                      fallback="the torch ray march and airlight")
+#: march.cpp (torch.ops.nimbus_march), airlight.cpp (torch.ops.nimbus_airlight) and consistency.cpp
+#: (torch.ops.nimbus_consistency): one library, one build.
+EXTENSION = Extension("nimbus_march", ("march.cpp", "airlight.cpp", "consistency.cpp"), kernel="ray-march kernel",
+                      fallback="the torch ray march, airlight and consistency check")
 
 
 def available() -> bool:

@@ -46,6 +46,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from nimbus.data.camera import Camera
+from nimbus.kernels import consistency as consistency_kernel
 
 _LEVELS = 255.0
 _MAD_TO_STD = 1.4826
@@ -155,22 +156,40 @@ class _ViewConstants:
     R: Tensor       # [3, 3] float32
     t: Tensor       # [3] float32
     bright: Tensor  # [H, W] intensity (mean over RGB), CONSISTENCY_WINDOW-maximum-filtered
+    lum: Tensor     # [H, W] intensity (mean over RGB)
+    pose: Tensor    # [12] float32: R row-major, then t (the compiled kernel's form)
+    intrinsics: Tensor  # [4] float32: fx, fy, cx, cy
 
 
 def _view_constants(camera: Camera, image: Tensor) -> _ViewConstants:
     device = image.device
     lum = image.float().mean(dim=-1)
     pad = CONSISTENCY_WINDOW // 2
+    R = torch.as_tensor(np.array(camera.R), dtype=torch.float32, device=device)
+    t = torch.as_tensor(np.array(camera.t), dtype=torch.float32, device=device)
     return _ViewConstants(
         rays=torch.as_tensor(camera.pixel_rays(np.float64), dtype=torch.float32, device=device).reshape(-1, 3),
-        R=torch.as_tensor(np.array(camera.R), dtype=torch.float32, device=device),
-        t=torch.as_tensor(np.array(camera.t), dtype=torch.float32, device=device),
-        bright=F.max_pool2d(lum[None, None], CONSISTENCY_WINDOW, stride=1, padding=pad)[0, 0])
+        R=R, t=t, bright=F.max_pool2d(lum[None, None], CONSISTENCY_WINDOW, stride=1, padding=pad)[0, 0].contiguous(),
+        lum=lum, pose=torch.cat([R.reshape(9), t.reshape(3)]),
+        intrinsics=torch.tensor([camera.fx, camera.fy, camera.cx, camera.cy], dtype=torch.float32, device=device))
 
 
 def _excess(image: Tensor, g: ViewGeometry, own: _ViewConstants,
             others: list[tuple[ViewGeometry, _ViewConstants]]) -> Tensor:
-    """:func:`consistency_excess` of the view showing ``image`` from its constants and its neighbours'."""
+    """:func:`consistency_excess` of the view showing ``image`` from its constants and its neighbours':
+    by the compiled kernel where it builds (:mod:`nimbus.kernels.consistency`, the same bits), else by
+    :func:`_excess_torch`."""
+    if others and consistency_kernel.usable(image, g.depth, neighbours=len(others)):
+        nbs = [(cj.pose, cj.intrinsics, gj.depth, gj.valid, cj.bright, (gj.camera.width, gj.camera.height))
+               for gj, cj in others]
+        return consistency_kernel.consistency_excess(own.lum, own.rays, g.depth, g.valid, own.pose,
+                                                     nbs).reshape(own.lum.shape)
+    return _excess_torch(image, g, own, others)
+
+
+def _excess_torch(image: Tensor, g: ViewGeometry, own: _ViewConstants,
+                  others: list[tuple[ViewGeometry, _ViewConstants]]) -> Tensor:
+    """:func:`_excess` in torch ops (the reference the kernel is tested against)."""
     lum = image.float().mean(dim=-1)
     h, w = lum.shape
     p_cam = own.rays * g.depth.reshape(-1, 1).float()
@@ -274,8 +293,11 @@ class ViewConsistency:
 
     @torch.no_grad()
     def excesses(self, geometry: list[ViewGeometry]) -> list[Tensor]:
-        """:meth:`excess` of every view, ``[H, W]`` each, with the current rendered surfaces ``geometry``."""
-        if not self._batchable():
+        """:meth:`excess` of every view, ``[H, W]`` each, with the current rendered surfaces ``geometry``.
+
+        Where the compiled kernel builds, view after view through it (the same bits as the batch below)."""
+        kernel = bool(geometry) and consistency_kernel.usable(geometry[0].depth, neighbours=len(self.others[0]))
+        if kernel or not self._batchable():
             return [self.excess(i, geometry) for i in range(len(geometry))]
         h, w = geometry[0].depth.shape
         surfaces = torch.stack([torch.stack([g.depth.float(), g.valid.float()]) for g in geometry])
