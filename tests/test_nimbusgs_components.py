@@ -448,9 +448,14 @@ def test_ggs_scales_gradient_rows_and_samples_error_at_pixel_centres():
     torch.testing.assert_close(sample_error(err, pos), torch.tensor([0.0, 11.0, 0.5]))
     t = {"a": torch.zeros(3, 2, requires_grad=True), "b": torch.zeros(3, requires_grad=True)}
     (t["a"].sum() + t["b"].sum()).backward()
-    scale_gradients(t, torch.tensor([1.0, 2.0, 0.5]))
+    scaled, finite = scale_gradients(t, torch.tensor([1.0, 2.0, 0.5]))
+    assert finite and [id(g) for g in scaled] == [id(t["a"].grad), id(t["b"].grad)]
     torch.testing.assert_close(t["a"].grad, torch.tensor([[1.0, 1.0], [2.0, 2.0], [0.5, 0.5]]))
     torch.testing.assert_close(t["b"].grad, torch.tensor([1.0, 2.0, 0.5]))
+    t["b"].grad[1] = float("inf")  # the scaling pass is the guard of what it scaled
+    assert not scale_gradients(t, torch.tensor([1.0, 2.0, 0.5]))[1]
+    t["b"].grad[1] = 3.0
+    assert not scale_gradients(t, torch.tensor([1.0, float("nan"), 0.5]))[1]  # a product that is not finite
 
 
 # --- losses and restoration ---------------------------------------------------------------

@@ -220,6 +220,16 @@ def test_ggs_rescales_gradients_and_densification_statistics(hazy, tmp_path):
     ndc = ndc_grad_norm(means2d_grad(meta), view.camera.width, view.camera.height)
     vis = meta["visible"]
     torch.testing.assert_close(weighted["grad_accum"][vis], plain["grad_accum"][vis] + (w[vis] - 1) * ndc[vis])
+    # GGS's pass is the gradient guard of what it scaled; the guard still checks the medium's gradients.
+    assert t._grads_finite() and t._checked_grads is None
+    medium = [p for group in t.medium.param_groups() for p in group["params"] if p.grad is not None]
+    assert medium
+    for poisoned in (t.params["sh_dc"], medium[0]):
+        keep = poisoned.grad.clone()
+        poisoned.grad.view(-1)[0] = float("nan")
+        t.reweight_gradients(step, vi, render, pred, gt, info)
+        assert not t._grads_finite()
+        poisoned.grad.copy_(keep)
 
 
 def _constant_scene(scene, value):

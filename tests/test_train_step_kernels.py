@@ -131,6 +131,43 @@ def test_all_finite():
     assert train_step.all_finite([torch.ones(2, 3)[:, ::2], torch.ones(4, dtype=torch.int64)])
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_scale_rows_all_finite_is_torchs_broadcast_mul_bit_for_bit(dtype):
+    gen = torch.Generator().manual_seed(0)
+    n = 5000
+    shapes = [(n,), (n, 3), (n, 15, 3), (n, 0)]
+    grads = [torch.randn(s, generator=gen, dtype=dtype) * 1e3 for s in shapes]
+    w = torch.rand(n, generator=gen, dtype=dtype) * 3
+    expect = [g * w.reshape((n,) + (1,) * (g.dim() - 1)) for g in grads]
+    threads = torch.get_num_threads()
+    for count in (1, max(2, threads)):
+        torch.set_num_threads(count)
+        try:
+            got = [g.clone() for g in grads]
+            assert train_step.scale_rows_all_finite(got, w)
+        finally:
+            torch.set_num_threads(threads)
+        assert all(torch.equal(a, b) for a, b in zip(got, expect))
+    for bad_grad, bad_weight in ((math.inf, 1.0), (math.nan, 1.0), (1.0, math.inf), (3e38, 10.0)):
+        got = [g.clone().float() for g in grads[:2]]
+        got[1][4321, 2] = bad_grad
+        ww = w.float().clone()
+        ww[4321] = bad_weight
+        assert not train_step.scale_rows_all_finite(got, ww)
+    assert train_step.scale_rows_all_finite([], w)
+
+
+def test_scale_rows_all_finite_takes_torch_where_the_kernel_does_not_apply():
+    w = torch.tensor([1.0, 2.0, 0.5])
+    f64 = torch.ones(3, 2, dtype=torch.float64)
+    strided = torch.ones(3, 4)[:, ::2]
+    assert train_step.scale_rows_all_finite([f64, strided], w)  # float64 rows, float32 weights; not contiguous
+    assert torch.equal(f64, torch.tensor([[1.0, 1.0], [2.0, 2.0], [0.5, 0.5]], dtype=torch.float64))
+    assert torch.equal(strided, torch.tensor([[1.0, 1.0], [2.0, 2.0], [0.5, 0.5]]))
+    strided[1, 0] = math.nan
+    assert not train_step.scale_rows_all_finite([strided], w)
+
+
 def test_all_finite_of_no_cpu_float_tensor_loads_no_library(monkeypatch):
     # as for a CUDA run's gradients, which are never CPU tensors: the CPU library is not asked for (a CPU
     # library's build lock once stalled GPU workers)

@@ -7,10 +7,11 @@
 - :mod:`~nimbus.kernels.raster`: the rasterizer's library (``composite.cpp`` +
   ``project.cpp``), used by the "cpp" backend; its instruction-set clones (``NIMBUS_CPU_ISA``).
 - :mod:`~nimbus.kernels.march`: NimbusGS's library: its ray march through the extinction grid
-  (``march.cpp``), and the network airlight's fused MLP (``airlight.cpp``, bound in
-  :mod:`~nimbus.kernels.airlight`).
+  (``march.cpp``), the network airlight's fused MLP (``airlight.cpp``, bound in
+  :mod:`~nimbus.kernels.airlight`) and the particulate layer's view-consistency check
+  (``consistency.cpp``, bound in :mod:`~nimbus.kernels.consistency`).
 - :mod:`~nimbus.kernels.train_step`: the training step's loss (L1 + SSIM) with its gradient, and
-  the gradients' finiteness check (``train_step.cpp``).
+  the gradients' finiteness check, alone or fused with GGS's per-row scaling (``train_step.cpp``).
 
 Each library builds on first use and is independent of the others: one failing to build
 leaves the others usable, and each falls back to its torch path.

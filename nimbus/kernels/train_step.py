@@ -7,7 +7,8 @@ separable filters instead of five 11x11 depthwise convolutions and their transpo
 forward also forms the gradient w.r.t. the prediction, which the backward only scales.
 Equal to the torch loss up to float rounding (not bit for bit).  :func:`all_finite` is
 ``all(torch.isfinite(t).all() for t in tensors)``, in one read pass without temporaries
-where it can.  Every result is bitwise the same for any thread count.
+where it can, and :func:`scale_rows_all_finite` the same check fused with GGS's per-row scaling
+of the gradients.  Every result is bitwise the same for any thread count.
 
 The kernels (``csrc/train_step.cpp``) are their own library (:data:`EXTENSION`, built and
 cached by :class:`nimbus.kernels.extension.Extension`, apart from the rasterizer's);
@@ -23,7 +24,7 @@ from torch.autograd.function import once_differentiable
 
 from nimbus.kernels.extension import Extension
 
-__all__ = ["loss_usable", "photometric_loss", "all_finite", "EXTENSION"]
+__all__ = ["loss_usable", "photometric_loss", "all_finite", "scale_rows_all_finite", "EXTENSION"]
 
 #: train_step.cpp (torch.ops.nimbus_train_step).
 EXTENSION = Extension("nimbus_train_step", ("train_step.cpp",), kernel="training-step kernels (loss, gradient check)",
@@ -81,6 +82,21 @@ def photometric_loss(pred: Tensor, gt: Tensor, lambda_dssim: float, taps: Tensor
 
 def _cpu_float(t: Tensor) -> bool:
     return t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64) and t.is_contiguous()
+
+
+def scale_rows_all_finite(tensors: list[Tensor], weights: Tensor) -> bool:
+    """Multiply row ``i`` of every tensor (first dimension ``N``) by ``weights[i]`` in place, and return whether
+    every product is finite: ``t.mul_(w.reshape(N, 1, ...))`` for each, then :func:`all_finite`, in one pass
+    where the library loads and every tensor is a contiguous CPU float tensor of the weights' dtype (the same
+    products, bit for bit), else with those torch ops."""
+    n = weights.shape[0]
+    if (tensors and _cpu_float(weights) and all(_cpu_float(t) and t.dtype == weights.dtype and t.dim() >= 1
+                                                and t.shape[0] == n for t in tensors)
+            and EXTENSION.available(warn=False)):
+        return bool(torch.ops.nimbus_train_step.scale_rows_all_finite(tensors, weights))
+    for t in tensors:
+        t.mul_(weights.to(t.dtype).reshape((n,) + (1,) * (t.dim() - 1)))
+    return all_finite(tensors)
 
 
 def all_finite(tensors: list[Tensor]) -> bool:

@@ -1,5 +1,5 @@
 // The training step's kernels (nimbus/kernels/train_step.py): the loss with its gradient, and
-// the finiteness check of the gradients, each in one pass.
+// the finiteness check of the gradients (alone, or with GGS's per-row scaling), each in one pass.
 //
 // The loss (1 - lambda) L1 + lambda (1 - mean SSIM) of one [H, W, C] image pair
 // (optionally masked) and its gradient w.r.t. the prediction are one op.
@@ -31,6 +31,7 @@
 #include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <memory>
 #include <tuple>
 #include <vector>
@@ -200,6 +201,30 @@ std::tuple<at::Tensor, at::Tensor> photometric_loss(const at::Tensor& pred, cons
 // Elements per task of all_finite.
 constexpr int64_t kFiniteGrain = 1 << 15;
 
+// Whether x is not finite, as an integer test on its bits (|x| at or above infinity's bit pattern: inf,
+// NaN) that GCC vectorises with any SSE2, where std::isfinite kept these loops scalar (4.7 ms for the
+// 47 MB of a 198k-Gaussian model's gradients, against 3.4 ms to scale them).
+template <typename T>
+struct FloatBits;
+template <>
+struct FloatBits<float> {
+  using Int = int32_t;
+  static constexpr Int kAbs = 0x7fffffff;
+  static constexpr Int kInf = 0x7f800000;
+};
+template <>
+struct FloatBits<double> {
+  using Int = int64_t;
+  static constexpr Int kAbs = 0x7fffffffffffffffLL;
+  static constexpr Int kInf = 0x7ff0000000000000LL;
+};
+template <typename T>
+inline typename FloatBits<T>::Int not_finite(T x) {
+  typename FloatBits<T>::Int bits;
+  std::memcpy(&bits, &x, sizeof(T));
+  return (bits & FloatBits<T>::kAbs) >= FloatBits<T>::kInf;
+}
+
 // Whether every element of every tensor is finite (one read pass, no temporaries).
 bool all_finite(const std::vector<at::Tensor>& tensors) {
   for (const at::Tensor& x : tensors) {
@@ -209,8 +234,8 @@ bool all_finite(const std::vector<at::Tensor>& tensors) {
       const scalar_t* d = x.data_ptr<scalar_t>();
       std::atomic<bool> bad{false};
       at::parallel_for(0, x.numel(), kFiniteGrain, [&](int64_t b, int64_t e) {
-        bool any = false;
-        for (int64_t i = b; i < e; ++i) any |= !std::isfinite(d[i]);
+        typename FloatBits<scalar_t>::Int any = 0;
+        for (int64_t i = b; i < e; ++i) any |= not_finite(d[i]);
         if (any) bad.store(true, std::memory_order_relaxed);
       });
       ok = !bad.load();
@@ -220,10 +245,59 @@ bool all_finite(const std::vector<at::Tensor>& tensors) {
   return true;
 }
 
+// Rows per task of scale_rows_all_finite.
+constexpr int64_t kScaleGrain = 1 << 10;
+
+// Multiply row i of every tensor (first dimension N) by weights[i] in place, and say whether every
+// product is finite: NimbusGS's GGS scaling and the gradient guard in one pass instead of a write
+// pass and a read pass.  Each element is x * w[i] in the tensor's dtype, as torch's broadcast mul_.
+bool scale_rows_all_finite(const std::vector<at::Tensor>& tensors, const at::Tensor& weights) {
+  TORCH_CHECK(weights.dim() == 1 && weights.is_contiguous() && weights.device().is_cpu(),
+              "scale_rows_all_finite: weights must be a contiguous CPU vector");
+  const int64_t n = weights.size(0);
+  bool ok = true;
+  for (const at::Tensor& x : tensors) {
+    TORCH_CHECK(x.is_contiguous() && x.device().is_cpu() && x.dim() >= 1 && x.size(0) == n &&
+                    x.scalar_type() == weights.scalar_type(),
+                "scale_rows_all_finite: contiguous CPU tensors of N rows and the weights' dtype only");
+    if (x.numel() == 0) continue;
+    const int64_t cols = x.numel() / n;
+    AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "scale_rows_all_finite", [&] {
+      scalar_t* d = x.data_ptr<scalar_t>();
+      const scalar_t* w = weights.data_ptr<scalar_t>();
+      std::atomic<bool> bad{false};
+      at::parallel_for(0, n, kScaleGrain, [&](int64_t b, int64_t e) {
+        typename FloatBits<scalar_t>::Int any = 0;
+        if (cols == 1) {  // a vector (opacities): one pass over the rows
+          for (int64_t i = b; i < e; ++i) {
+            const scalar_t v = d[i] * w[i];
+            d[i] = v;
+            any |= not_finite(v);
+          }
+        } else {
+          for (int64_t i = b; i < e; ++i) {
+            scalar_t* row = d + i * cols;
+            const scalar_t wi = w[i];
+            for (int64_t j = 0; j < cols; ++j) {
+              const scalar_t v = row[j] * wi;
+              row[j] = v;
+              any |= not_finite(v);
+            }
+          }
+        }
+        if (any) bad.store(true, std::memory_order_relaxed);
+      });
+      ok = ok && !bad.load();
+    });
+  }
+  return ok;
+}
+
 }  // namespace
 }  // namespace nimbus_train_step
 
 TORCH_LIBRARY(nimbus_train_step, m) {
   m.def("photometric_loss", &nimbus_train_step::photometric_loss);
   m.def("all_finite", &nimbus_train_step::all_finite);
+  m.def("scale_rows_all_finite", &nimbus_train_step::scale_rows_all_finite);
 }

@@ -25,6 +25,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from nimbus.kernels import train_step
+
 _EPS = 1e-12
 
 
@@ -123,14 +125,15 @@ def ggs_weights(depths: Tensor, radii: Tensor, means2d: Tensor, error_map: Tenso
     return w, info
 
 
-def scale_gradients(tensors: dict[str, Tensor], weights: Tensor) -> None:
-    """Multiply the ``.grad`` rows of every per-Gaussian tensor (first dim N) by ``weights`` [N] (in place)."""
+def scale_gradients(tensors: dict[str, Tensor], weights: Tensor) -> tuple[list[Tensor], bool]:
+    """Multiply the ``.grad`` rows of every per-Gaussian tensor (first dim N) by ``weights`` [N] (in place).
+
+    Returns the gradients it scaled and whether all of them are finite afterwards: the training step's
+    gradient guard for those, checked in the same pass (:func:`nimbus.kernels.train_step.scale_rows_all_finite`).
+    """
     n = weights.shape[0]
-    for t in tensors.values():
-        g = t.grad
-        if g is None or g.shape[0] != n:
-            continue
-        g.mul_(weights.to(g.dtype).reshape((n,) + (1,) * (g.dim() - 1)))
+    grads = [t.grad for t in tensors.values() if t.grad is not None and t.grad.dim() >= 1 and t.grad.shape[0] == n]
+    return grads, train_step.scale_rows_all_finite(grads, weights)
 
 
 def ndc_grad_norm(means2d_grad: Tensor, width: int, height: int) -> Tensor:

@@ -49,6 +49,7 @@ from torch import Tensor
 
 from nimbus.data import Camera
 from nimbus.data.images import write_image
+from nimbus.kernels import train_step
 from nimbus.methods.gs3d import GaussianSplatting
 from nimbus.methods.nimbusgs.airlight import network_airlight_bytes, view_descriptor
 from nimbus.methods.nimbusgs.auto import (ParticleEvidence, haze_evidence, particle_evidence, particle_thresholds,
@@ -93,6 +94,8 @@ class NimbusGS(GaussianSplatting):
         self._consistency = None
         #: ``refresh_mode=lazy``: each training view's rendered surface when it was last rendered (None until needed).
         self._surfaces: list[ViewGeometry] | None = None
+        #: This step's gradients that GGS scaled, and whether they were finite (its pass checks them).
+        self._checked_grads: tuple[list[Tensor], bool] | None = None
         self.medium: Medium | None = None
         self.particulate: ParticulateLayer | None = None
         self.ggs = GGSFactors(c.ggs_depth, c.ggs_radius, c.ggs_error, c.ggs_r0, tuple(c.ggs_clip))
@@ -325,9 +328,19 @@ class NimbusGS(GaussianSplatting):
             error = error * self.train_masks[view_index]
         means2d = meta["means2d"].detach().reshape(-1, 2)
         w, _ = ggs_weights(meta["depths"], meta["radii"], means2d, error, meta["visible"], self.ggs)
-        scale_gradients(self.params.tensors, w)
+        self._checked_grads = scale_gradients(self.params.tensors, w)
         info["grad2d_weight"] = w
         self.timing["ggs_s"] += time.perf_counter() - t0
+
+    def _grads_finite(self) -> bool:
+        """The gradient guard, less the gradients that GGS's scaling pass checked this step."""
+        checked, self._checked_grads = self._checked_grads, None
+        if checked is None:
+            return super()._grads_finite()
+        scaled, ok = checked
+        done = {id(g) for g in scaled}
+        return ok and train_step.all_finite([p.grad for group in self.param_groups() for p in group["params"]
+                                             if p.grad is not None and id(p.grad) not in done])
 
     def optimizer_step(self) -> None:
         super().optimizer_step()
