@@ -16,7 +16,8 @@ interval, the airlight network, the photometric loss (L1 + SSIM), L_DCP, L_TV, G
 the optimiser step, one whole stage-1 and stage-2 ``train_iteration`` (densification off, so every
 repeat times the same model), and the stage-boundary
 and periodic PLM refresh (every training view rendered and composed, plus the
-view-consistency check).  Each row is the median of ``--repeats`` runs after one
+view-consistency check), and that check alone on one view (torch, and the compiled kernel),
+and the gradient guard alone.  Each row is the median of ``--repeats`` runs after one
 warm-up (the refresh and stage boundary: one run); ``cpu ms`` is the process CPU time
 over the same run, which on a machine shared with other jobs tells the work apart from
 the waiting.  The Gaussians are the scene's initial ones (their count is printed), or
@@ -36,7 +37,8 @@ import time
 
 import torch
 
-from nimbus.methods.nimbusgs.particulate import is_refresh_step
+from nimbus.methods.gs3d import GaussianSplatting
+from nimbus.methods.nimbusgs.particulate import _excess_torch, is_refresh_step
 from nimbus.methods.nimbusgs.scattering import march, march_interval, march_reference
 from nimbus.render.rasterize import means2d_grad
 
@@ -150,6 +152,14 @@ def component_rows(tr, repeats: int, reference: bool) -> list[tuple[str, float, 
     tr._end_stage1(c.m_init)
     rows.append(("stage boundary (evidence + first R)", 1e3 * (time.perf_counter() - t0),
                  1e3 * (time.process_time() - c0)))
+    check = tr._consistency_check()
+    if check is not None and check.others[vi]:
+        geometry = tr._surfaces if tr._surfaces is not None else tr._composites(c.m_init)[1]
+        own, others = check._view(vi), [(geometry[j], check._view(j)) for j in check.others[vi]]
+        rows.append((f"consistency check, one view, {len(others)} neighbours (torch)",
+                     *_time(lambda: _excess_torch(check.images[vi], geometry[vi], own, others), repeats)))
+        rows.append(("consistency check, one view (compiled where it builds)",
+                     *_time(lambda: check.excess(vi, geometry), repeats)))
     add(f"stage-2 iteration (all of it, it {it2})", step_at(it2))
     # GGS and the optimiser step alone, after a stage-2 forward/backward.
     r2 = tr.render(view.camera, c.sh_degree)
@@ -158,8 +168,10 @@ def component_rows(tr, repeats: int, reference: bool) -> list[tuple[str, float, 
     meta = r2["meta"]
     info = {"means2d_grad": means2d_grad(meta), "radii": meta["radii"], "visible": meta["visible"],
             "width": view.camera.width, "height": view.camera.height}
-    rows.append(("GGS (reweight_gradients)",
+    rows.append(("gradient guard alone (every gradient)", *_time(lambda: GaussianSplatting._grads_finite(tr), repeats)))
+    rows.append(("GGS (reweight_gradients, with the guard of what it scales)",
                  *_time(lambda: tr.reweight_gradients(it2, vi, r2, pred, gt, info), repeats)))
+    tr._checked_grads = None
 
     def opt_step():
         for group in tr.param_groups():
