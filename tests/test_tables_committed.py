@@ -76,6 +76,11 @@ def test_street_small_h_tables_regenerate(tmp_path, capsys):
     _tables_regenerate("street_small_H", tmp_path, capsys, "--methods", "nimbus,restore-3dgs")
 
 
+def test_small_hazy_tables_regenerate(tmp_path, capsys):
+    """NimbusGS against restore-3dgs on the small scenes under the four hazy settings, at one commit (issue 34)."""
+    _tables_regenerate("small_hazy", tmp_path, capsys, "--methods", "nimbus,restore-3dgs")
+
+
 def test_validation_tiny_summaries_regenerate():
     """Every ``tools.validation_cells --summary`` block in tables/validation_tiny/README.md is followed by its output."""
     from tools.validation_cells import summary
