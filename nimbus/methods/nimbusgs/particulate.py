@@ -177,8 +177,8 @@ def _view_constants(camera: Camera, image: Tensor) -> _ViewConstants:
 def _excess(image: Tensor, g: ViewGeometry, own: _ViewConstants,
             others: list[tuple[ViewGeometry, _ViewConstants]]) -> Tensor:
     """:func:`consistency_excess` of the view showing ``image`` from its constants and its neighbours':
-    by the compiled kernel where it builds (:mod:`nimbus.kernels.consistency`, the same bits), else by
-    :func:`_excess_torch`."""
+    by the compiled kernel where it builds (:mod:`nimbus.kernels.consistency`: the same bits as
+    :func:`_excess_torch` where torch runs its AVX2 or AVX-512 kernels), else by :func:`_excess_torch`."""
     if others and consistency_kernel.usable(image, g.depth, neighbours=len(others)):
         nbs = [(cj.pose, cj.intrinsics, gj.depth, gj.valid, cj.bright, (gj.camera.width, gj.camera.height))
                for gj, cj in others]
@@ -295,7 +295,8 @@ class ViewConsistency:
     def excesses(self, geometry: list[ViewGeometry]) -> list[Tensor]:
         """:meth:`excess` of every view, ``[H, W]`` each, with the current rendered surfaces ``geometry``.
 
-        Where the compiled kernel builds, view after view through it (the same bits as the batch below)."""
+        Where the compiled kernel builds, view after view through it (the batch below gives the same bits where
+        torch runs its AVX2 or AVX-512 kernels)."""
         kernel = bool(geometry) and consistency_kernel.usable(geometry[0].depth, neighbours=len(self.others[0]))
         if kernel or not self._batchable():
             return [self.excess(i, geometry) for i in range(len(geometry))]
