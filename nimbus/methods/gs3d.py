@@ -216,9 +216,12 @@ class GaussianSplatting:
     def param_groups(self) -> list[dict]:
         return list(self.params.optimizer.param_groups)
 
+    def _gradients(self) -> list[Tensor]:
+        """Every optimised parameter's gradient (those that have one)."""
+        return [p.grad for group in self.param_groups() for p in group["params"] if p.grad is not None]
+
     def _grads_finite(self) -> bool:
-        return train_step.all_finite([p.grad for group in self.param_groups() for p in group["params"]
-                                      if p.grad is not None])
+        return train_step.all_finite(self._gradients())
 
     # --- state -------------------------------------------------------------------------
     def state_dict(self) -> dict:

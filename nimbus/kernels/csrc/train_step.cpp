@@ -268,21 +268,13 @@ bool scale_rows_all_finite(const std::vector<at::Tensor>& tensors, const at::Ten
       std::atomic<bool> bad{false};
       at::parallel_for(0, n, kScaleGrain, [&](int64_t b, int64_t e) {
         typename FloatBits<scalar_t>::Int any = 0;
-        if (cols == 1) {  // a vector (opacities): one pass over the rows
-          for (int64_t i = b; i < e; ++i) {
-            const scalar_t v = d[i] * w[i];
-            d[i] = v;
+        for (int64_t i = b; i < e; ++i) {
+          scalar_t* row = d + i * cols;
+          const scalar_t wi = w[i];
+          for (int64_t j = 0; j < cols; ++j) {
+            const scalar_t v = row[j] * wi;
+            row[j] = v;
             any |= not_finite(v);
-          }
-        } else {
-          for (int64_t i = b; i < e; ++i) {
-            scalar_t* row = d + i * cols;
-            const scalar_t wi = w[i];
-            for (int64_t j = 0; j < cols; ++j) {
-              const scalar_t v = row[j] * wi;
-              row[j] = v;
-              any |= not_finite(v);
-            }
           }
         }
         if (any) bad.store(true, std::memory_order_relaxed);

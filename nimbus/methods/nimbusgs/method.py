@@ -339,8 +339,7 @@ class NimbusGS(GaussianSplatting):
             return super()._grads_finite()
         scaled, ok = checked
         done = {id(g) for g in scaled}
-        return ok and train_step.all_finite([p.grad for group in self.param_groups() for p in group["params"]
-                                             if p.grad is not None and id(p.grad) not in done])
+        return ok and train_step.all_finite([g for g in self._gradients() if id(g) not in done])
 
     def optimizer_step(self) -> None:
         super().optimizer_step()
