@@ -68,6 +68,25 @@ def test_a_strided_airlight_is_close_to_the_per_pixel_one_and_trains_the_same_we
     assert all(g is not None and torch.isfinite(g).all() for g in grads) and float(grads[-2].abs().sum()) > 0
 
 
+def test_the_block_directions_are_computed_once_per_view_and_equal_fresh_ones(monkeypatch):
+    """A view's block-mean unit directions depend on its rays alone: kept on the rays, the same bits as a fresh pass."""
+    import nimbus.methods.nimbusgs.degradation as degradation
+
+    rays, render, image = _view(23, 31)  # edge blocks cut by the image border
+    desc = torch.tensor([0.7, 0.75, 0.8, 0.5, 0.5, 0.5])
+    m = _medium(2)
+    calls = []
+    block = degradation.block_mean
+    monkeypatch.setattr(degradation, "block_mean", lambda x, *a: calls.append(x.shape[1]) or block(x, *a))
+    _, p_first = m.forward(rays, render, desc)
+    _, p_again = m.forward(rays, render, desc)
+    assert calls.count(3) == 1 and calls.count(1) == 2  # directions once, T every time
+    assert torch.equal(p_first, p_again)
+    fresh = block(rays.dirs, 23, 31, 2)
+    fresh = fresh / fresh.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    assert torch.equal(rays.derived(("block_dirs", 2), lambda: None), fresh)
+
+
 def test_stride_one_is_the_per_pixel_airlight_bit_for_bit():
     rays, render, image = _view()
     desc = torch.tensor([0.7, 0.75, 0.8, 0.5, 0.5, 0.5])

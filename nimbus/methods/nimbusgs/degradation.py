@@ -54,6 +54,10 @@ def block_mean(x: Tensor, h: int, w: int, s: int) -> Tensor:
     return F.avg_pool2d(img, s, s, ceil_mode=True)[0].permute(1, 2, 0).reshape(-1, c)
 
 
+def _unit(dirs: Tensor) -> Tensor:
+    return dirs / dirs.norm(dim=1, keepdim=True).clamp_min(1e-12)
+
+
 def upsample_blocks(low: Tensor, h: int, w: int, s: int) -> Tensor:
     """Per-block values ``low`` [ceil(H/s) * ceil(W/s), C] bilinearly interpolated to every pixel ``[H * W, C]``,
     each block's value sitting at its centre (edge blocks extrapolate flat)."""
@@ -167,8 +171,7 @@ class Medium:
         if s == 1 or self.cfg.airlight != "network":
             return self.airlight(rays.dirs, transmission, descriptor, pixels)
         h, w = rays.height, rays.width
-        dirs = block_mean(rays.dirs, h, w, s)
-        dirs = dirs / dirs.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        dirs = rays.derived(("block_dirs", s), lambda: _unit(block_mean(rays.dirs, h, w, s)))
         low = self.airlight(dirs, block_mean(transmission.detach()[:, None], h, w, s)[:, 0], descriptor,
                             None if pixels is None else block_mean(pixels, h, w, s))
         return upsample_blocks(low, h, w, s)

@@ -206,6 +206,14 @@ class ViewRays:
     height: int
     width: int
     _boxes: dict = dataclass_field(default_factory=dict, repr=False, compare=False)
+    _derived: dict = dataclass_field(default_factory=dict, repr=False, compare=False)
+
+    def derived(self, key, compute):
+        """``compute()``, computed once per ``key`` for these rays: a value that depends on the rays alone
+        (a training view's rays do not change during training)."""
+        if key not in self._derived:
+            self._derived[key] = compute()
+        return self._derived[key]
 
     def box_interval(self, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
         """:func:`ray_box_interval` of these rays through the box ``[lo, hi]``, computed once per box (a
