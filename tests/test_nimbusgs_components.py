@@ -388,6 +388,26 @@ def test_ggs_factors_follow_the_paper_equation():
     assert torch.all(off == 1.0)
 
 
+def test_kth_smallest_is_the_partitions_value_on_hostile_arrays():
+    """The bracketed selection gives np.partition's value on ties, sorted, sparse and heavy-tailed data, at any rank
+    (and falls back where its sample misleads it)."""
+    from nimbus.methods.nimbusgs.ggs import kth_smallest
+
+    rng = np.random.default_rng(0)
+    n = 20_000
+    arrays = [rng.random(n).astype(np.float32), np.round(rng.random(n) * 3).astype(np.float32),
+              np.sort(rng.random(n)), np.sort(rng.random(n))[::-1].copy(), rng.standard_cauchy(n),
+              np.zeros(n, np.float32)]
+    arrays[-1][rng.integers(0, n, 5)] = 1.0
+    # The strided sample sees only zeros where the upper half is ones everywhere else: the bracket misses.
+    trap = np.ones(n, np.float32)
+    trap[:: n // 1024] = 0.0
+    arrays.append(trap)
+    for a in arrays:
+        for k in (0, 1, n // 3, (n - 1) // 2, n - 2, n - 1):
+            assert kth_smallest(a, k) == np.partition(a, k)[k]
+
+
 @pytest.mark.parametrize("n", [1, 2, 7, 8, 100_001])
 def test_lower_median_is_torchs_median(n):
     g = torch.Generator().manual_seed(n)

@@ -24,10 +24,11 @@ from nimbus.kernels.extension import Extension
 
 __all__ = ["available", "usable", "grid_optical_depth", "grid_tv", "EXTENSION"]
 
-#: march.cpp (torch.ops.nimbus_march), airlight.cpp (torch.ops.nimbus_airlight) and consistency.cpp
-#: (torch.ops.nimbus_consistency): one library, one build.
-EXTENSION = Extension("nimbus_march", ("march.cpp", "airlight.cpp", "consistency.cpp"), kernel="ray-march kernel",
-                      fallback="the torch ray march, airlight and consistency check")
+#: march.cpp (torch.ops.nimbus_march), airlight.cpp (torch.ops.nimbus_airlight), consistency.cpp
+#: (torch.ops.nimbus_consistency) and sample.cpp (torch.ops.nimbus_sample): one library, one build.
+EXTENSION = Extension("nimbus_march", ("march.cpp", "airlight.cpp", "consistency.cpp", "sample.cpp"),
+                      kernel="ray-march kernel",
+                      fallback="the torch ray march, airlight, consistency check and GGS sampling")
 
 
 def available() -> bool:

@@ -13,15 +13,10 @@
 // torch computes the same with some thirty passes over [K, H W] tensors (three grid_samples per
 // neighbour, a nanmedian over the stacked samples); here each pixel goes through every neighbour
 // at once.  The result is the same bit for bit: every float32 operation is the one torch performs
-// on that element, in its order, grid_sample's arithmetic included (align_corners false, border
-// padding: unnormalise (g + 1) * size / 2 - 0.5, clamp to [0, size - 1] with NaN to 0; nearest:
-// round half to even; bilinear: the four corner weights and the sum nw + ne + sw + se, corners past
-// the last row or column read as 0), and the median is a selection (the lower middle of the counted
-// samples, as torch.nanmedian).  torch's vectorised grid_sample is compiled with FMA contraction: its
-// unnormalisation and its weighted sum are fused multiply-adds on AVX2 and AVX-512 machines (measured:
-// 25 % of bilinear samples differ in the last bit otherwise).  Those are written here as std::fma
-// (exactly rounded on every CPU), everything else without contraction (-ffp-contract=off).  So
-// this kernel gives the same bits on every CPU, and equals torch's where torch runs its AVX2 or
+// on that element, in its order, grid_sample's included (grid_sample.h: its border-padded bilinear
+// arithmetic, with the fused multiply-adds of torch's vectorised kernel; nearest: round half to even), and
+// the median is a selection (the lower middle of the counted samples, as torch.nanmedian).  So this kernel
+// gives the same bits on every CPU, and equals torch's where torch runs its AVX2 or
 // AVX-512 kernels.  Pixels are independent: the same bits for any thread count.
 //
 // Registered as torch.ops.nimbus_consistency.excess; built into NimbusGS's extension with
@@ -40,9 +35,13 @@
 #include <vector>
 
 #include "common.h"
+#include "grid_sample.h"
 
 namespace nimbus_consistency {
 namespace {
+
+using nimbus_grid_sample::bilinear;
+using nimbus_grid_sample::location;
 
 // Pixels per parallel chunk: a few microseconds of work each.
 constexpr int64_t kGrain = 2048;
@@ -59,15 +58,6 @@ struct Neighbour {
   const float* valid;    // [H, W], > 0 where its surface is valid
   const float* bright;   // [H, W]
 };
-
-// grid_sample's location along one axis: align_corners=False unnormalisation, then border clamping.
-NIMBUS_INLINE float location(float coord, int64_t size) {
-  const float g = coord / static_cast<float>(size) * 2.0f - 1.0f;  // the Python side's u / w * 2 - 1
-  float x = std::fma(g + 1.0f, static_cast<float>(size) / 2, -0.5f);
-  const float hi = static_cast<float>(size - 1);
-  x = std::isnan(x) ? 0.0f : std::max(x, 0.0f);  // clamp_min(Vec(0), x): NaN goes to 0
-  return std::min(x, hi);
-}
 
 NIMBUS_INLINE float excess_pixel(float lum, const float* ray, float depth, bool valid, const float* R, const float* t,
                    const std::vector<Neighbour>& nbs) {
@@ -101,18 +91,7 @@ NIMBUS_INLINE float excess_pixel(float lum, const float* ray, float depth, bool 
       const int64_t yi = static_cast<int64_t>(std::nearbyint(y));
       const int64_t at = yi * nb.W + xi;
       if (!(nb.valid[at] > 0.0f) || !(z <= nb.depth[at] * 1.05f)) continue;
-      // Bilinear, as grid_sample's compute_interp_params and forward.
-      const float x_w = std::floor(x), y_n = std::floor(y);
-      const float w = x - x_w, e = 1.0f - w, n = y - y_n, s = 1.0f - n;
-      const float nw = s * e, ne = s * w, sw = n * e, se = n * w;
-      const int64_t ix = static_cast<int64_t>(x_w), iy = static_cast<int64_t>(y_n);
-      const bool east = ix + 1 < nb.W, south = iy + 1 < nb.H;
-      const float* row = nb.bright + iy * nb.W;
-      const float nw_val = row[ix];
-      const float ne_val = east ? row[ix + 1] : 0.0f;
-      const float sw_val = south ? row[nb.W + ix] : 0.0f;
-      const float se_val = east && south ? row[nb.W + ix + 1] : 0.0f;
-      const float value = std::fma(se_val, se, std::fma(sw_val, sw, std::fma(ne_val, ne, nw_val * nw)));
+      const float value = bilinear(nb.bright, nb.W, nb.H, x, y);  // as grid_sample's bilinear forward
       if (std::isnan(value)) continue;  // nanmedian skips it
       samples[count++] = value;
     }

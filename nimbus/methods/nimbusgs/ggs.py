@@ -18,6 +18,7 @@ is.  The mean-normalised weight is clipped to ``clip`` (the released code's guar
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from nimbus.kernels import sample as sample_kernel
 from nimbus.kernels import train_step
 
 _EPS = 1e-12
@@ -41,13 +43,19 @@ class GGSFactors:
     clip: tuple[float, float] = (0.5, 3.0)
 
 
-def sample_error(error_map: Tensor, means2d: Tensor) -> Tensor:
-    """Bilinear samples ``[M]`` of ``error_map`` [H, W] at pixel positions ``means2d`` [M, 2] (x, y).
+def sample_error(error_map: Tensor, means2d: Tensor, rows: Tensor | None = None) -> Tensor:
+    """Bilinear samples ``[M]`` of ``error_map`` [H, W] at pixel positions ``means2d`` [M, 2] (x, y), or at its
+    ``rows`` [M] (int64 indices) only.
 
     Positions use the project's pixel convention (pixel (u, v) spans [u, u + 1) x [v, v + 1),
     centre at +0.5), i.e. grid_sample's ``align_corners=False`` frame; outside the image
-    the border value is used.
+    the border value is used.  On the CPU in float32 the compiled kernel samples (the same bits as
+    ``grid_sample``'s vectorised kernel, :mod:`nimbus.kernels.sample`).
     """
+    if rows is not None and sample_kernel.usable(error_map, means2d) and rows.device.type == "cpu":
+        return sample_kernel.bilinear_border(error_map, means2d, rows)
+    if rows is not None:
+        means2d = means2d.index_select(0, rows)
     h, w = error_map.shape
     if means2d.shape[0] == 0:
         return error_map.new_zeros(0)
@@ -57,16 +65,42 @@ def sample_error(error_map: Tensor, means2d: Tensor) -> Tensor:
                          align_corners=False).reshape(-1)
 
 
+#: Below this many values :func:`kth_smallest` partitions them all; above, it brackets the rank first.
+_BRACKET_MIN = 8192
+
+
+def kth_smallest(a: np.ndarray, k: int):
+    """The ``k``-th smallest value (0-based) of a 1-D NaN-free array: ``np.partition(a, k)[k]``, exactly.
+
+    A large array is first bracketed: the rank's neighbourhood in a sorted strided sample of about 1024
+    values gives bounds ``lo <= hi``; the values below ``lo`` are counted and only those in ``[lo, hi]`` are
+    partitioned (~1.7x faster at 165k values).  The k-th smallest value is one value whatever finds it, so the
+    result is the same; a bracket that misses the rank (an unlucky sample) falls back to the whole partition.
+    """
+    n = a.size
+    if n < _BRACKET_MIN:
+        return np.partition(a, k)[k]
+    sample = np.sort(a[:: n // 1024])
+    m = sample.size
+    centre, margin = k / n * m, 3.0 * math.sqrt(m) + 2.0  # ~6 sd of a sample rank around the centre
+    lo, hi = sample[max(int(centre - margin), 0)], sample[min(int(centre + margin), m - 1)]
+    below = int(np.count_nonzero(a < lo))
+    inside = a[(a >= lo) & (a <= hi)]
+    if below <= k < below + inside.size:
+        return np.partition(inside, k - below)[k - below]
+    return np.partition(a, k)[k]
+
+
 def lower_median(x: Tensor) -> Tensor:
     """``x.median()`` of a 1-D tensor (the lower of the two middle values for an even count), as a 0-d tensor.
 
-    On the CPU by selection in numpy (``np.partition``: the same element, ~6x faster than torch's median on
-    100k values); a NaN anywhere, or another device, takes torch's median, which returns NaN.
+    On the CPU by selection in numpy (:func:`kth_smallest`: the same element, ~10x faster than torch's median
+    on 165k values); a NaN anywhere, or another device, takes torch's median, which returns NaN.
     """
     if x.device.type != "cpu" or x.requires_grad or bool(torch.isnan(x).any()):
         return x.median()
     k = (x.numel() - 1) // 2
-    return torch.as_tensor(np.partition(x.contiguous().numpy(), k)[k], dtype=x.dtype)
+    return torch.as_tensor(kth_smallest(x.contiguous().numpy(), k), dtype=x.dtype)
 
 
 def robust_normalise(e: Tensor) -> Tensor:
@@ -112,7 +146,7 @@ def ggs_weights(depths: Tensor, radii: Tensor, means2d: Tensor, error_map: Tenso
     if factors.radius:
         wv = wv * (r / factors.r0)
     if factors.error:
-        e = sample_error(error_map.detach().float(), means2d.detach().index_select(0, vis).float())
+        e = sample_error(error_map.detach().float(), means2d.detach().float(), vis)
         wv = wv * torch.sigmoid(robust_normalise(e))
     wv = torch.nan_to_num(wv, nan=0.0, posinf=0.0, neginf=0.0)
     mean = wv.mean()
