@@ -353,6 +353,20 @@ def test_tophat_caps_the_residual_to_small_bright_structures():
     torch.testing.assert_close(capped[5, 6], torch.full((3,), 0.5))
 
 
+@pytest.mark.parametrize("window", [3, 7, 11])
+def test_tophat_is_the_square_opening_bit_for_bit(window):
+    """The separable passes give what one square pool over the replicated borders gives, NaN included."""
+    img = torch.rand(19, 27, 3, generator=torch.Generator().manual_seed(window))
+    img[4, 9, 1] = float("nan")
+    pad = window // 2
+    x = img.permute(2, 0, 1)[None]
+    eroded = -F.max_pool2d(F.pad(-x, (pad,) * 4, mode="replicate"), window, stride=1)
+    opened = F.max_pool2d(F.pad(eroded, (pad,) * 4, mode="replicate"), window, stride=1)
+    want = (x - opened).clamp_min(0.0)[0].permute(1, 2, 0)
+    assert torch.equal(white_tophat(img, window).isnan(), want.isnan())
+    assert torch.equal(white_tophat(img, window).nan_to_num(-1.0), want.nan_to_num(-1.0))
+
+
 def test_refresh_cadence():
     steps = [it for it in range(1, 101) if is_refresh_step(it, m_init=40, interval=15)]
     assert steps == [55, 70, 85, 100]
