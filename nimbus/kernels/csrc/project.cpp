@@ -305,7 +305,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   }
   const auto opts = means.options();
   at::Tensor gm = at::empty({N, 3}, opts), gq = at::empty({N, 4}, opts), gs = at::empty({N, 3}, opts);
-  at::Tensor gl = at::empty({N}, opts), gdc = at::empty({N, 1, 3}, opts), grest = at::empty({N, KR, 3}, opts);
+  at::Tensor gl = at::empty({N}, opts), gdc = at::empty({N, 1, 3}, opts), grest = at::zeros({N, KR, 3}, opts);
   AT_DISPATCH_FLOATING_TYPES(dtype, "project_backward", [&] {
     using S = scalar_t;
     const S *pm = means.data_ptr<S>(), *pq = quats.data_ptr<S>(), *ps = log_scales.data_ptr<S>();
@@ -322,9 +322,6 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
         for (int j = 0; j < 3; ++j) om[3 * i + j] = os[3 * i + j] = odc[3 * i + j] = 0;
         for (int j = 0; j < 4; ++j) oq[4 * i + j] = 0;
         ol[i] = 0;
-        // Zeroed here, row by row in the threads, not by at::zeros on one thread before them: the
-        // higher-order SH gradient is the largest output (45 values a Gaussian at degree 3).
-        std::fill_n(orest + i * KR * 3, KR * 3, S(0));
         const double z0 = c.R[6] * double(pm[3 * i]) + c.R[7] * double(pm[3 * i + 1]) +
                           c.R[8] * double(pm[3 * i + 2]) + c.t[2];
         if (!(z0 > c.near && z0 < c.far)) continue;
