@@ -41,6 +41,9 @@ namespace nimbus_consistency {
 namespace {
 
 using nimbus_grid_sample::bilinear;
+#ifdef NIMBUS_HAS_AVX2_CLONE
+using nimbus_grid_sample::cpu_has_avx2_fma;
+#endif
 using nimbus_grid_sample::location;
 
 // Pixels per parallel chunk: a few microseconds of work each.
@@ -115,11 +118,6 @@ __attribute__((target("avx2,fma"))) void pixels_avx2(const float* L, const float
                                                      const std::vector<Neighbour>& nbs, int64_t b, int64_t e,
                                                      float* o) {
   for (int64_t i = b; i < e; ++i) o[i] = excess_pixel(L[i], ry + 3 * i, d[i], vd[i] > 0.0f, pose, pose + 9, nbs);
-}
-
-bool cpu_has_avx2_fma() {
-  static const bool yes = (__builtin_cpu_init(), __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"));
-  return yes;
 }
 #endif
 

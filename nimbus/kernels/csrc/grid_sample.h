@@ -1,6 +1,6 @@
 // torch's grid_sample (2-D, one channel, align_corners=False, padding_mode="border") at one point, with the
 // float32 arithmetic of torch's vectorised CPU kernel, for the kernels that replace a grid_sample call
-// (consistency.cpp, ggs.cpp) and must give its bits.
+// (consistency.cpp, sample.cpp) and must give its bits.
 //
 // The Python side normalises a pixel coordinate as u / size * 2 - 1.  torch then unnormalises it as
 // (g + 1) * size / 2 - 0.5, clamps it to [0, size - 1] (NaN to 0), and takes the bilinear sum
@@ -9,7 +9,9 @@
 // fused multiply-adds (measured: 25 % of bilinear samples differ in the last bit otherwise).  They are
 // written here as std::fma (exactly rounded on every CPU) and everything else without contraction
 // (-ffp-contract=off), so these functions give the same bits on every CPU, and equal torch's where torch
-// runs its AVX2 or AVX-512 kernels.
+// runs its AVX2 or AVX-512 kernels.  The kernels also build an AVX2+FMA clone of their loops, where floor and fma
+// are single instructions instead of libm calls (each exactly rounded either way: the same bits), chosen at run time
+// by cpu_has_avx2_fma().
 
 #pragma once
 
@@ -17,7 +19,16 @@
 #include <cmath>
 #include <cstdint>
 
+#include "common.h"
+
 namespace nimbus_grid_sample {
+
+#ifdef NIMBUS_HAS_AVX2_CLONE
+inline bool cpu_has_avx2_fma() {
+  static const bool yes = (__builtin_cpu_init(), __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"));
+  return yes;
+}
+#endif
 
 // The sampling location along one axis of ``size`` pixels for the pixel coordinate ``coord``.
 inline __attribute__((always_inline)) float location(float coord, int64_t size) {

@@ -27,8 +27,8 @@ namespace {
 // Points per parallel chunk: a few microseconds of work each.
 constexpr int64_t kGrain = 8192;
 
-NIMBUS_INLINE void points(const float* map, int64_t W, int64_t H, const float* xy, const int64_t* index, int64_t b, int64_t e,
-            float* out) {
+NIMBUS_INLINE void points(const float* map, int64_t W, int64_t H, const float* xy, const int64_t* index, int64_t b,
+                          int64_t e, float* out) {
   for (int64_t j = b; j < e; ++j) {
     const float* p = xy + 2 * index[j];
     const float x = nimbus_grid_sample::location(p[0], W), y = nimbus_grid_sample::location(p[1], H);
@@ -41,11 +41,6 @@ NIMBUS_INLINE void points(const float* map, int64_t W, int64_t H, const float* x
 __attribute__((target("avx2,fma"))) void points_avx2(const float* map, int64_t W, int64_t H, const float* xy,
                                                      const int64_t* index, int64_t b, int64_t e, float* out) {
   points(map, W, H, xy, index, b, e, out);
-}
-
-bool cpu_has_avx2_fma() {
-  static const bool yes = (__builtin_cpu_init(), __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"));
-  return yes;
 }
 #endif
 
@@ -71,7 +66,7 @@ at::Tensor bilinear_border(const at::Tensor& map, const at::Tensor& xy, const at
   float* o = out.data_ptr<float>();
   at::parallel_for(0, V, kGrain, [&](int64_t b, int64_t e) {
 #ifdef NIMBUS_HAS_AVX2_CLONE
-    if (cpu_has_avx2_fma()) return points_avx2(m, W, H, p, idx, b, e, o);
+    if (nimbus_grid_sample::cpu_has_avx2_fma()) return points_avx2(m, W, H, p, idx, b, e, o);
 #endif
     points(m, W, H, p, idx, b, e, o);
   });

@@ -205,7 +205,6 @@ class ViewRays:
     z_to_distance: Tensor
     height: int
     width: int
-    _boxes: dict = dataclass_field(default_factory=dict, repr=False, compare=False)
     _derived: dict = dataclass_field(default_factory=dict, repr=False, compare=False)
 
     def derived(self, key, compute):
@@ -218,10 +217,8 @@ class ViewRays:
     def box_interval(self, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
         """:func:`ray_box_interval` of these rays through the box ``[lo, hi]``, computed once per box (a
         training view's rays and the medium's box do not change during training)."""
-        key = tuple(lo.tolist()) + tuple(hi.tolist())
-        if key not in self._boxes:
-            self._boxes[key] = ray_box_interval(self.origin, self.dirs, lo.detach(), hi.detach())
-        return self._boxes[key]
+        key = ("box", *lo.tolist(), *hi.tolist())
+        return self.derived(key, lambda: ray_box_interval(self.origin, self.dirs, lo.detach(), hi.detach()))
 
 
 def camera_rays(camera: Camera, device=None) -> ViewRays:
