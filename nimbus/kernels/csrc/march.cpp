@@ -17,6 +17,10 @@
 // polynomial exp and log1p (~1e-7 relative), float64 with std::exp / std::log1p.
 // float32 runs an AVX2 clone where the CPU has AVX2: the same operations (no FMA
 // contraction), so the same numbers as the generic code, in half the vector instructions.
+// There the forward and the kept backward also locate a ray's samples kLanes at a time and
+// the forward gathers their corners (the lane paths: locate's, interpolate's and scatter's
+// operations lane by lane, the sums in sample order, so again the same numbers; 1.3x the
+// forward's speed on the fast preset's march).
 //
 // Backward: dS/dfeatures only (the rays and their intervals are constants here; the
 // Python wrapper uses the torch path when t0 / t1 need gradients).  A forward that will be
@@ -43,6 +47,7 @@
 #include "interrupt.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
@@ -51,6 +56,10 @@
 #include <vector>
 
 #include "medium.h"
+
+#ifdef NIMBUS_HAS_AVX2_CLONE
+#include <immintrin.h>
+#endif
 
 namespace nimbus_march {
 namespace {
@@ -337,6 +346,147 @@ NIMBUS_INLINE void backward_any(const Grid<T>& g, const Rays<T>& rays, const T* 
   }
 }
 
+// Whether the float32 AVX2 paths locate kLanes samples at a time (forward_rays_gather, backward_rays_kept_gather)
+// rather than one (the AVX2 clones of forward_rays, backward_rays_kept): the same numbers either way; the switch
+// (march_set_lane_paths) lets the tests compare the two.
+std::atomic<bool> g_lane_paths{true};
+
+// The lane paths index the grid with int32 and count samples in float: a grid of < 2^31 voxels, < 2^24 samples.
+template <typename T>
+bool lane_paths_fit(const Grid<T>& g, int64_t samples) {
+  return g_lane_paths.load(std::memory_order_relaxed) && g.size[0] * g.size[1] * g.size[2] < (int64_t(1) << 31) &&
+         samples < (int64_t(1) << 24);
+}
+
+#ifdef NIMBUS_HAS_AVX2_CLONE
+// Locates kLanes samples of a ray at once (i = first + lane, the lanes from `count` on are not samples): the
+// base voxel and the fractions, with locate's operations lane by lane; `inside` is -1 where locate is true
+// (the base is 0 elsewhere, a voxel that is safe to read).
+struct VecCells {
+  VecI inside, base;
+  VecF w[3];
+};
+NIMBUS_TARGET_AVX2 NIMBUS_INLINE VecCells locate_lanes(const VoxelRay<float>& ray, int64_t first, int count,
+                                                       const VecF* top, const VecI* last, const VecI* stride) {
+  VecCells c;
+  const VecF lane = iota<float>();
+  const VecF fi = lane + float(first);  // float(i), exactly (i < 2^24)
+  c.inside = __builtin_convertvector(lane, VecI) < count;
+  c.base = splat_int<float>(0);
+  for (int a = 0; a < 3; ++a) {
+    VecF x = ray.first[a] + fi * ray.step[a];
+    const VecI in_axis = (x >= 0.0f) & (x <= top[a]);
+    c.inside &= in_axis;
+    x = select(in_axis, x, splat(0.0f));
+    VecI x0 = __builtin_convertvector(x, VecI);
+    x0 = select(x0 > last[a], last[a], x0);
+    c.w[a] = x - __builtin_convertvector(x0, VecF);
+    c.base += x0 * stride[a];
+  }
+  c.base = select(c.inside != 0, c.base, splat_int<float>(0));
+  return c;
+}
+
+// float32 forward with AVX2: a ray's samples kLanes at a time, located and interpolated lane by lane with
+// locate's and interpolate's operations in their order (so the same numbers as the scalar code), the eight
+// corners read with gathers.  Invalid samples (outside the box, or past the ray's last) get 0 and add
+// nothing; the valid ones are summed in sample order, as forward_rays sums them.
+NIMBUS_TARGET_AVX2 void forward_rays_gather(const Grid<float>& g, const Rays<float>& rays, int64_t b, int64_t e,
+                                            float* S, float* D) {
+  const int64_t K = rays.samples;
+  alignas(32) float f[kChunk], fd[kChunk];
+  alignas(32) int32_t ok[kChunk];
+  VecF top[3];
+  VecI last[3], stride[3];
+  for (int a = 0; a < 3; ++a) {
+    top[a] = splat(float(g.size[a] - 1));
+    last[a] = splat_int<float>(g.size[a] - 2);
+    stride[a] = splat_int<float>(g.stride[a]);
+  }
+  const int32_t sx = int32_t(g.stride[0]), sy = int32_t(g.stride[1]), sz = int32_t(g.stride[2]);
+  for (int64_t r = b; r < e; ++r) {
+    const float ds = rays.step(r);
+    float acc = 0;
+    const VoxelRay<float> ray = rays.voxels(g, r, ds);
+    float* dr = D ? D + r * K : nullptr;
+    for (int64_t i0 = 0; i0 < K; i0 += kChunk) {
+      const int m = int(std::min<int64_t>(kChunk, K - i0));
+      for (int j = 0; j < m; j += kLanes) {
+        const VecCells c = locate_lanes(ray, i0 + j, m - j, top, last, stride);
+        const VecI inside = c.inside, base = c.base;
+        const VecF* w = c.w;
+        const __m256i idx = (__m256i)base;
+#define NIMBUS_AT(off) ((VecF)_mm256_i32gather_ps(g.f + (off), idx, 4))
+        const VecF ux = 1.0f - w[0], uy = 1.0f - w[1], uz = 1.0f - w[2];
+        const VecF wx = w[0], wy = w[1], wz = w[2];
+        const VecF v = uz * (uy * (ux * NIMBUS_AT(0) + wx * NIMBUS_AT(sx)) + wy * (ux * NIMBUS_AT(sy) + wx * NIMBUS_AT(sy + sx))) +
+                       wz * (uy * (ux * NIMBUS_AT(sz) + wx * NIMBUS_AT(sz + sx)) +
+                             wy * (ux * NIMBUS_AT(sz + sy) + wx * NIMBUS_AT(sz + sy + sx)));
+#undef NIMBUS_AT
+        store(f + j, select(inside != 0, v, splat(0.0f)));
+        store(ok + j, inside);
+      }
+      const int mv = (m + kLanes - 1) / kLanes * kLanes;
+      if (dr) {
+        softplus_block(f, mv, fd);
+        for (int j = 0; j < m; ++j) dr[i0 + j] = ok[j] ? fd[j] : 0.0f;
+      } else {
+        softplus_block(f, mv);
+      }
+      for (int j = 0; j < m; ++j) {
+        if (ok[j]) acc += f[j];
+      }
+    }
+    S[r] = acc * ds;
+  }
+}
+#endif
+
+#ifdef NIMBUS_HAS_AVX2_CLONE
+// backward_rays_kept with AVX2: the samples located and their eight corner values computed kLanes at a time
+// (scatter's products, lane by lane), then added to the grid sample by sample, in backward_rays_kept's order.
+NIMBUS_TARGET_AVX2 void backward_rays_kept_gather(const Grid<float>& g, const Rays<float>& rays, const float* gS,
+                                                  const float* D, int64_t b, int64_t e, float* acc) {
+  const int64_t K = rays.samples;
+  VecF top[3];
+  VecI last[3], stride[3];
+  for (int a = 0; a < 3; ++a) {
+    top[a] = splat(float(g.size[a] - 1));
+    last[a] = splat_int<float>(g.size[a] - 2);
+    stride[a] = splat_int<float>(g.stride[a]);
+  }
+  const int64_t sx = g.stride[0], sy = g.stride[1], sz = g.stride[2];
+  const int64_t off[8] = {0, sx, sy, sy + sx, sz, sz + sx, sz + sy, sz + sy + sx};
+  alignas(32) float part[8][kLanes];
+  alignas(32) int32_t ok[kLanes], base[kLanes];
+  for (int64_t r = b; r < e; ++r) {
+    const float ds = rays.step(r);
+    const float coef = gS[r] * ds;
+    if (coef == 0.0f) continue;
+    const VoxelRay<float> ray = rays.voxels(g, r, ds);
+    const float* dr = D + r * K;
+    for (int64_t i0 = 0; i0 < K; i0 += kLanes) {
+      const int m = int(std::min<int64_t>(kLanes, K - i0));
+      const VecCells c = locate_lanes(ray, i0, m, top, last, stride);
+      float vals[kLanes] = {};
+      std::copy(dr + i0, dr + i0 + m, vals);
+      const VecF value = coef * load<VecF>(vals);
+      const VecF wx = c.w[0], wy = c.w[1], wz = c.w[2];
+      const VecF ux = 1.0f - wx, uy = 1.0f - wy, uz = 1.0f - wz;
+      const VecF a0 = uz * uy * value, a1 = uz * wy * value, a2 = wz * uy * value, a3 = wz * wy * value;
+      store(part[0], ux * a0), store(part[1], wx * a0), store(part[2], ux * a1), store(part[3], wx * a1);
+      store(part[4], ux * a2), store(part[5], wx * a2), store(part[6], ux * a3), store(part[7], wx * a3);
+      store(ok, c.inside), store(base, c.base);
+      for (int j = 0; j < m; ++j) {
+        if (!ok[j]) continue;
+        float* v = acc + base[j];
+        for (int k = 0; k < 8; ++k) v[off[k]] += part[k][j];
+      }
+    }
+  }
+}
+#endif
+
 // float32 runs the AVX2 clone where the CPU has it: the same operations (no FMA contraction), wider.
 void forward_rays_generic(const Grid<float>& g, const Rays<float>& rays, int64_t b, int64_t e, float* S, float* D) {
   forward_rays(g, rays, b, e, S, D);
@@ -358,6 +508,7 @@ NIMBUS_TARGET_AVX2 void backward_rays_avx2(const Grid<float>& g, const Rays<floa
 
 void run_forward(const Grid<float>& g, const Rays<float>& rays, int64_t b, int64_t e, float* S, float* D) {
 #ifdef NIMBUS_HAS_AVX2_CLONE
+  if (cpu_has_avx2() && lane_paths_fit(g, rays.samples)) return forward_rays_gather(g, rays, b, e, S, D);
   if (cpu_has_avx2()) return forward_rays_avx2(g, rays, b, e, S, D);
 #endif
   forward_rays_generic(g, rays, b, e, S, D);
@@ -368,6 +519,7 @@ void run_forward(const Grid<double>& g, const Rays<double>& rays, int64_t b, int
 void run_backward(const Grid<float>& g, const Rays<float>& rays, const float* gS, const float* D, int64_t b, int64_t e,
                   float* acc) {
 #ifdef NIMBUS_HAS_AVX2_CLONE
+  if (cpu_has_avx2() && D && lane_paths_fit(g, rays.samples)) return backward_rays_kept_gather(g, rays, gS, D, b, e, acc);
   if (cpu_has_avx2()) return backward_rays_avx2(g, rays, gS, D, b, e, acc);
 #endif
   backward_rays_generic(g, rays, gS, D, b, e, acc);
@@ -696,7 +848,15 @@ at::Tensor grid_tv_backward(const at::Tensor& sp, const at::Tensor& sig, const a
 }  // namespace
 }  // namespace nimbus_march
 
+namespace nimbus_march {
+namespace {
+// Turns the lane paths on or off (tests); returns the previous setting.
+bool march_set_lane_paths(bool enabled) { return g_lane_paths.exchange(enabled); }
+}  // namespace
+}  // namespace nimbus_march
+
 TORCH_LIBRARY(nimbus_march, m) {
+  m.def("march_set_lane_paths", &nimbus_march::march_set_lane_paths);
   m.def("march_forward", &nimbus_march::march_forward);
   m.def("march_backward", &nimbus_march::march_backward);
   m.def("march_forward_keep", &nimbus_march::march_forward_keep);
