@@ -211,8 +211,8 @@ def test_ggs_rescales_gradients_and_densification_statistics(hazy, tmp_path):
     torch.testing.assert_close(t.params["means"].grad, grads["means"] * w[:, None])
     torch.testing.assert_close(t.params["sh_dc"].grad, grads["sh_dc"] * w[:, None, None])
     torch.testing.assert_close(info["grad2d_weight"], w)
-    # The strategy accumulates the weighted statistic (no densification or reset at this step).
-    strategy = dataclasses.replace(t.strategy, densify_from=10**9, opacity_reset_interval=10**9)
+    # The strategy accumulates the weighted statistic (densifying later, not at this step; no reset).
+    strategy = dataclasses.replace(t.strategy, densify_from=step, densify_until=10**9, opacity_reset_interval=10**9)
     plain, weighted = strategy.initialize_state(), strategy.initialize_state()
     unweighted = {k: v for k, v in info.items() if k != "grad2d_weight"}
     assert strategy.step_post_backward(t.params, plain, step, unweighted, t.gen) == []

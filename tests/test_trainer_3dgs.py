@@ -199,6 +199,28 @@ def test_densify_keeps_optimizer_state_aligned():
     torch.testing.assert_close(split_scales, (parent_scale / 1.6).expand(2, 3))
 
 
+@pytest.mark.parametrize(("start", "until", "every", "last"), [(300, 1500, 100, 1500), (3, 9, 3, 9), (3, 10, 3, 9),
+                                                              (5, 5, 5, 0), (4, 5, 5, 5), (0, 0, 1, 0)])
+def test_statistics_stop_after_the_last_densification(start, until, every, last):
+    strategy = dataclasses.replace(DefaultStrategy.from_config(TrainConfig(), extent=1.0), densify_from=start,
+                                   densify_until=until, densify_interval=every)
+    assert strategy.last_densify_step() == last
+    assert [s for s in range(1, until + 2 * every + 1) if strategy.is_densify_step(s)][-1:] == ([last] if last else [])
+    radii = torch.tensor([3, 0, 2])
+    info = {"means2d_grad": torch.tensor([[1.0, 0], [1.0, 1.0], [0, 2.0]]) / 32, "radii": radii,
+            "visible": radii > 0, "width": 64, "height": 48}
+    params = GaussianParams({"means": torch.zeros(3, 3)}, {"means": 0.01}, 1e-15)
+    state = strategy.initialize_state()
+    for step in (last + 1, last + 2):  # after the last densification nothing reads them: not accumulated
+        strategy.step_post_backward(params, state, step, info, torch.Generator().manual_seed(0))
+    assert all(state[k].numel() == 0 for k in ("grad_accum", "denom", "max_radii"))
+    if last:  # up to it they are (the step before the last densification is none)
+        strategy.step_post_backward(params, state, last - 1, info, torch.Generator().manual_seed(0))
+        assert torch.equal(state["denom"], torch.tensor([1.0, 0.0, 1.0]))
+        torch.testing.assert_close(state["grad_accum"], torch.tensor([1.0, 0.0, 1.5]))
+        assert torch.equal(state["max_radii"], torch.tensor([3.0, 0.0, 2.0]))
+
+
 @pytest.mark.parametrize("relative", [False, True])
 def test_world_size_prune_is_angular_for_far_gaussians_when_relative(relative):
     # Three 2 m wide Gaussians: near the cameras, 50 m away, and a 20 m giant 50 m away.

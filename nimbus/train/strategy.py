@@ -103,13 +103,19 @@ class DefaultStrategy:
     def is_densify_step(self, step: int) -> bool:
         return self.densify_from < step <= self.densify_until and step % self.densify_interval == 0
 
+    def last_densify_step(self) -> int:
+        """The last step :meth:`is_densify_step` accepts (0 when there is none)."""
+        last = self.densify_until - self.densify_until % self.densify_interval
+        return last if last > self.densify_from else 0
+
     def is_reset_step(self, step: int) -> bool:
         return step % self.opacity_reset_interval == 0 and step <= self.densify_until
 
     # --- the step ------------------------------------------------------------------------
     def step_post_backward(self, params: GaussianParams, state: dict, step: int, info: dict,
                            generator: torch.Generator) -> list[tuple[str, dict]]:
-        """Accumulate this step's statistics, then densify / prune / reset opacities on the schedule.
+        """Accumulate this step's statistics (up to the last densification step), then densify / prune / reset
+        opacities on the schedule.
 
         Parameters
         ----------
@@ -131,7 +137,9 @@ class DefaultStrategy:
         list of (str, dict)
             Events to log: ``("densify", {"gaussians", "cloned", "split", "pruned"})``, ``("opacity_reset", {})``.
         """
-        if info.get("means2d_grad") is not None:
+        # The statistics are read by the densification steps alone: after the last one nothing reads them (about
+        # 2 ms a step at 200k Gaussians, half the run at the fast preset).
+        if info.get("means2d_grad") is not None and step <= self.last_densify_step():
             self._accumulate(state, info)
         events = []
         if self.is_densify_step(step):
