@@ -422,6 +422,16 @@ def test_kth_smallest_is_the_partitions_value_on_hostile_arrays():
             assert kth_smallest(a, k) == np.partition(a, k)[k]
 
 
+def test_visible_rows_are_torchs_nonzero():
+    from nimbus.methods.nimbusgs.ggs import visible_rows
+
+    g = torch.Generator().manual_seed(0)
+    for v in (torch.rand(200_003, generator=g) < 0.27, torch.zeros(5, dtype=torch.bool), torch.ones(9, dtype=torch.bool),
+              torch.zeros(0, dtype=torch.bool), (torch.rand(40, generator=g) < 0.5)[::2]):
+        got, expect = visible_rows(v), v.nonzero().squeeze(1)
+        assert got.dtype == expect.dtype == torch.int64 and torch.equal(got, expect)
+
+
 @pytest.mark.parametrize("n", [1, 2, 7, 8, 100_001])
 def test_lower_median_is_torchs_median(n):
     g = torch.Generator().manual_seed(n)
