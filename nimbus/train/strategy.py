@@ -138,9 +138,13 @@ class DefaultStrategy:
             Events to log: ``("densify", {"gaussians", "cloned", "split", "pruned"})``, ``("opacity_reset", {})``.
         """
         # The statistics are read by the densification steps alone: after the last one nothing reads them (about
-        # 2 ms a step at 200k Gaussians, half the run at the fast preset).
-        if info.get("means2d_grad") is not None and step <= self.last_densify_step():
-            self._accumulate(state, info)
+        # 2 ms a step at 200k Gaussians, half the run at the fast preset), and they stay zeros sized like the
+        # model (a checkpoint's statistics must match its Gaussians).
+        if step <= self.last_densify_step():
+            if info.get("means2d_grad") is not None:
+                self._accumulate(state, info)
+        elif state["grad_accum"].shape[0] != len(params):
+            self._reset(state, len(params), params["means"].device)
         events = []
         if self.is_densify_step(step):
             counts = self._densify_and_prune(params, state, step, generator)
