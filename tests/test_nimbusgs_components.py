@@ -426,8 +426,10 @@ def test_visible_rows_are_torchs_nonzero():
     from nimbus.methods.nimbusgs.ggs import visible_rows
 
     g = torch.Generator().manual_seed(0)
-    for v in (torch.rand(200_003, generator=g) < 0.27, torch.zeros(5, dtype=torch.bool), torch.ones(9, dtype=torch.bool),
-              torch.zeros(0, dtype=torch.bool), (torch.rand(40, generator=g) < 0.5)[::2]):
+    sparse = torch.rand(200_003, generator=g) < 0.27
+    strided = (torch.rand(40, generator=g) < 0.5)[::2]
+    for v in (sparse, torch.zeros(5, dtype=torch.bool), torch.ones(9, dtype=torch.bool),
+              torch.zeros(0, dtype=torch.bool), strided):
         got, expect = visible_rows(v), v.nonzero().squeeze(1)
         assert got.dtype == expect.dtype == torch.int64 and torch.equal(got, expect)
 

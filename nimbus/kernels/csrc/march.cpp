@@ -419,7 +419,8 @@ NIMBUS_TARGET_AVX2 void forward_rays_gather(const Grid<float>& g, const Rays<flo
 #define NIMBUS_AT(off) ((VecF)_mm256_i32gather_ps(g.f + (off), idx, 4))
         const VecF ux = 1.0f - w[0], uy = 1.0f - w[1], uz = 1.0f - w[2];
         const VecF wx = w[0], wy = w[1], wz = w[2];
-        const VecF v = uz * (uy * (ux * NIMBUS_AT(0) + wx * NIMBUS_AT(sx)) + wy * (ux * NIMBUS_AT(sy) + wx * NIMBUS_AT(sy + sx))) +
+        const VecF v = uz * (uy * (ux * NIMBUS_AT(0) + wx * NIMBUS_AT(sx)) +
+                             wy * (ux * NIMBUS_AT(sy) + wx * NIMBUS_AT(sy + sx))) +
                        wz * (uy * (ux * NIMBUS_AT(sz) + wx * NIMBUS_AT(sz + sx)) +
                              wy * (ux * NIMBUS_AT(sz + sy) + wx * NIMBUS_AT(sz + sy + sx)));
 #undef NIMBUS_AT
@@ -519,7 +520,9 @@ void run_forward(const Grid<double>& g, const Rays<double>& rays, int64_t b, int
 void run_backward(const Grid<float>& g, const Rays<float>& rays, const float* gS, const float* D, int64_t b, int64_t e,
                   float* acc) {
 #ifdef NIMBUS_HAS_AVX2_CLONE
-  if (cpu_has_avx2() && D && lane_paths_fit(g, rays.samples)) return backward_rays_kept_gather(g, rays, gS, D, b, e, acc);
+  if (cpu_has_avx2() && D && lane_paths_fit(g, rays.samples)) {
+    return backward_rays_kept_gather(g, rays, gS, D, b, e, acc);
+  }
   if (cpu_has_avx2()) return backward_rays_avx2(g, rays, gS, D, b, e, acc);
 #endif
   backward_rays_generic(g, rays, gS, D, b, e, acc);
