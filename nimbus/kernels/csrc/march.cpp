@@ -366,8 +366,21 @@ struct VecCells {
   VecI inside, base;
   VecF w[3];
 };
-NIMBUS_TARGET_AVX2 NIMBUS_INLINE VecCells locate_lanes(const VoxelRay<float>& ray, int64_t first, int count,
-                                                       const VecF* top, const VecI* last, const VecI* stride) {
+// The grid's bounds per axis as vectors (the largest voxel coordinate, the last cell's base, the stride), built
+// once per call of a lane path.
+struct LaneGrid {
+  VecF top[3];
+  VecI last[3], stride[3];
+  NIMBUS_TARGET_AVX2 explicit LaneGrid(const Grid<float>& g) {
+    for (int a = 0; a < 3; ++a) {
+      top[a] = splat(float(g.size[a] - 1));
+      last[a] = splat_int<float>(g.size[a] - 2);
+      stride[a] = splat_int<float>(g.stride[a]);
+    }
+  }
+};
+NIMBUS_TARGET_AVX2 NIMBUS_INLINE VecCells locate_lanes(const LaneGrid& lg, const VoxelRay<float>& ray, int64_t first,
+                                                       int count) {
   VecCells c;
   const VecF lane = iota<float>();
   const VecF fi = lane + float(first);  // float(i), exactly (i < 2^24)
@@ -375,13 +388,13 @@ NIMBUS_TARGET_AVX2 NIMBUS_INLINE VecCells locate_lanes(const VoxelRay<float>& ra
   c.base = splat_int<float>(0);
   for (int a = 0; a < 3; ++a) {
     VecF x = ray.first[a] + fi * ray.step[a];
-    const VecI in_axis = (x >= 0.0f) & (x <= top[a]);
+    const VecI in_axis = (x >= 0.0f) & (x <= lg.top[a]);
     c.inside &= in_axis;
     x = select(in_axis, x, splat(0.0f));
     VecI x0 = __builtin_convertvector(x, VecI);
-    x0 = select(x0 > last[a], last[a], x0);
+    x0 = select(x0 > lg.last[a], lg.last[a], x0);
     c.w[a] = x - __builtin_convertvector(x0, VecF);
-    c.base += x0 * stride[a];
+    c.base += x0 * lg.stride[a];
   }
   c.base = select(c.inside != 0, c.base, splat_int<float>(0));
   return c;
@@ -396,13 +409,7 @@ NIMBUS_TARGET_AVX2 void forward_rays_gather(const Grid<float>& g, const Rays<flo
   const int64_t K = rays.samples;
   alignas(32) float f[kChunk], fd[kChunk];
   alignas(32) int32_t ok[kChunk];
-  VecF top[3];
-  VecI last[3], stride[3];
-  for (int a = 0; a < 3; ++a) {
-    top[a] = splat(float(g.size[a] - 1));
-    last[a] = splat_int<float>(g.size[a] - 2);
-    stride[a] = splat_int<float>(g.stride[a]);
-  }
+  const LaneGrid lg(g);
   const int32_t sx = int32_t(g.stride[0]), sy = int32_t(g.stride[1]), sz = int32_t(g.stride[2]);
   for (int64_t r = b; r < e; ++r) {
     const float ds = rays.step(r);
@@ -412,20 +419,18 @@ NIMBUS_TARGET_AVX2 void forward_rays_gather(const Grid<float>& g, const Rays<flo
     for (int64_t i0 = 0; i0 < K; i0 += kChunk) {
       const int m = int(std::min<int64_t>(kChunk, K - i0));
       for (int j = 0; j < m; j += kLanes) {
-        const VecCells c = locate_lanes(ray, i0 + j, m - j, top, last, stride);
-        const VecI inside = c.inside, base = c.base;
-        const VecF* w = c.w;
-        const __m256i idx = (__m256i)base;
+        const VecCells c = locate_lanes(lg, ray, i0 + j, m - j);
+        const __m256i idx = (__m256i)c.base;
 #define NIMBUS_AT(off) ((VecF)_mm256_i32gather_ps(g.f + (off), idx, 4))
-        const VecF ux = 1.0f - w[0], uy = 1.0f - w[1], uz = 1.0f - w[2];
-        const VecF wx = w[0], wy = w[1], wz = w[2];
+        const VecF wx = c.w[0], wy = c.w[1], wz = c.w[2];
+        const VecF ux = 1.0f - wx, uy = 1.0f - wy, uz = 1.0f - wz;
         const VecF v = uz * (uy * (ux * NIMBUS_AT(0) + wx * NIMBUS_AT(sx)) +
                              wy * (ux * NIMBUS_AT(sy) + wx * NIMBUS_AT(sy + sx))) +
                        wz * (uy * (ux * NIMBUS_AT(sz) + wx * NIMBUS_AT(sz + sx)) +
                              wy * (ux * NIMBUS_AT(sz + sy) + wx * NIMBUS_AT(sz + sy + sx)));
 #undef NIMBUS_AT
-        store(f + j, select(inside != 0, v, splat(0.0f)));
-        store(ok + j, inside);
+        store(f + j, select(c.inside != 0, v, splat(0.0f)));
+        store(ok + j, c.inside);
       }
       const int mv = (m + kLanes - 1) / kLanes * kLanes;
       if (dr) {
@@ -441,21 +446,13 @@ NIMBUS_TARGET_AVX2 void forward_rays_gather(const Grid<float>& g, const Rays<flo
     S[r] = acc * ds;
   }
 }
-#endif
 
-#ifdef NIMBUS_HAS_AVX2_CLONE
 // backward_rays_kept with AVX2: the samples located and their eight corner values computed kLanes at a time
 // (scatter's products, lane by lane), then added to the grid sample by sample, in backward_rays_kept's order.
 NIMBUS_TARGET_AVX2 void backward_rays_kept_gather(const Grid<float>& g, const Rays<float>& rays, const float* gS,
                                                   const float* D, int64_t b, int64_t e, float* acc) {
   const int64_t K = rays.samples;
-  VecF top[3];
-  VecI last[3], stride[3];
-  for (int a = 0; a < 3; ++a) {
-    top[a] = splat(float(g.size[a] - 1));
-    last[a] = splat_int<float>(g.size[a] - 2);
-    stride[a] = splat_int<float>(g.stride[a]);
-  }
+  const LaneGrid lg(g);
   const int64_t sx = g.stride[0], sy = g.stride[1], sz = g.stride[2];
   const int64_t off[8] = {0, sx, sy, sy + sx, sz, sz + sx, sz + sy, sz + sy + sx};
   alignas(32) float part[8][kLanes];
@@ -468,7 +465,7 @@ NIMBUS_TARGET_AVX2 void backward_rays_kept_gather(const Grid<float>& g, const Ra
     const float* dr = D + r * K;
     for (int64_t i0 = 0; i0 < K; i0 += kLanes) {
       const int m = int(std::min<int64_t>(kLanes, K - i0));
-      const VecCells c = locate_lanes(ray, i0, m, top, last, stride);
+      const VecCells c = locate_lanes(lg, ray, i0, m);
       float vals[kLanes] = {};
       std::copy(dr + i0, dr + i0 + m, vals);
       const VecF value = coef * load<VecF>(vals);
