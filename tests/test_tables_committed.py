@@ -81,6 +81,16 @@ def test_small_hazy_tables_regenerate(tmp_path, capsys):
     _tables_regenerate("small_hazy", tmp_path, capsys, "--methods", "nimbus,restore-3dgs")
 
 
+def test_small_haze_free_tables_regenerate(tmp_path, capsys):
+    """NimbusGS against 3DGS and robust-3dgs on the small scenes under R, S and R+S, at one commit (issue 34)."""
+    _tables_regenerate("small_haze_free", tmp_path, capsys, "--methods", "nimbus,3dgs,robust-3dgs")
+
+
+def test_small_paper_tables_regenerate(tmp_path, capsys):
+    """nimbus-paper against 3DGS on the small garden under H (issue 34)."""
+    _tables_regenerate("small_paper_H", tmp_path, capsys, "--methods", "nimbus-paper,3dgs")
+
+
 def test_validation_tiny_summaries_regenerate():
     """Every ``tools.validation_cells --summary`` block in tables/validation_tiny/README.md is followed by its output."""
     from tools.validation_cells import summary
