@@ -87,7 +87,7 @@ def test_small_haze_free_tables_regenerate(tmp_path, capsys):
 
 
 def test_small_paper_tables_regenerate(tmp_path, capsys):
-    """nimbus-paper against 3DGS on the small garden under H (issue 34)."""
+    """nimbus-paper against 3DGS on the small garden and street under H (issue 34)."""
     _tables_regenerate("small_paper_H", tmp_path, capsys, "--methods", "nimbus-paper,3dgs")
 
 
