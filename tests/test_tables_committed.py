@@ -91,6 +91,11 @@ def test_small_paper_tables_regenerate(tmp_path, capsys):
     _tables_regenerate("small_paper_H", tmp_path, capsys, "--methods", "nimbus-paper,3dgs")
 
 
+def test_small_physical_h_tables_regenerate(tmp_path, capsys):
+    """NimbusGS against restore-3dgs on the small garden and street under one-medium (physical) haze (issue 34)."""
+    _tables_regenerate("small_physical_H", tmp_path, capsys, "--methods", "nimbus,restore-3dgs")
+
+
 def test_validation_tiny_summaries_regenerate():
     """Every ``tools.validation_cells --summary`` block in tables/validation_tiny/README.md is followed by its output."""
     from tools.validation_cells import summary
