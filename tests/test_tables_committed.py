@@ -81,19 +81,14 @@ def test_small_hazy_tables_regenerate(tmp_path, capsys):
     _tables_regenerate("small_hazy", tmp_path, capsys, "--methods", "nimbus,restore-3dgs")
 
 
-def test_small_haze_free_tables_regenerate(tmp_path, capsys):
-    """NimbusGS against 3DGS and robust-3dgs on the small scenes under R, S and R+S, at one commit (issue 34)."""
-    _tables_regenerate("small_haze_free", tmp_path, capsys, "--methods", "nimbus,3dgs,robust-3dgs")
-
-
-def test_small_paper_tables_regenerate(tmp_path, capsys):
-    """nimbus-paper against 3DGS on the small garden and street under H (issue 34)."""
-    _tables_regenerate("small_paper_H", tmp_path, capsys, "--methods", "nimbus-paper,3dgs")
-
-
-def test_small_physical_h_tables_regenerate(tmp_path, capsys):
-    """NimbusGS against restore-3dgs on the small garden and street under one-medium (physical) haze (issue 34)."""
-    _tables_regenerate("small_physical_H", tmp_path, capsys, "--methods", "nimbus,restore-3dgs")
+@pytest.mark.parametrize("folder, methods", [
+    ("small_haze_free", "nimbus,3dgs,robust-3dgs"),  # R, S and R+S on the three small scenes, at one commit
+    ("small_paper_H", "nimbus-paper,3dgs"),  # nimbus-paper at small size, garden and street under H
+    ("small_physical_H", "nimbus,restore-3dgs"),  # one-medium (physical) haze, garden and street under H
+])
+def test_issue34_small_tables_regenerate(folder, methods, tmp_path, capsys):
+    """Issue 34's small-scene folders of 2026-11-30, each with the README's --methods."""
+    _tables_regenerate(folder, tmp_path, capsys, "--methods", methods)
 
 
 def test_validation_tiny_summaries_regenerate():
