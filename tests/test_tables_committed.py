@@ -83,6 +83,7 @@ def test_small_hazy_tables_regenerate(tmp_path, capsys):
 
 @pytest.mark.parametrize("folder, methods", [
     ("small_haze_free", "nimbus,3dgs,robust-3dgs"),  # R, S and R+S on the three small scenes, at one commit
+    ("small_street_S_seeds", "nimbus,3dgs,robust-3dgs"),  # the smallest haze-free margin, three training seeds
     ("small_paper_H", "nimbus-paper,3dgs"),  # nimbus-paper at small size, garden and street under H
     ("small_physical_H", "nimbus,restore-3dgs"),  # one-medium (physical) haze, garden and street under H
 ])
