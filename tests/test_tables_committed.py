@@ -94,6 +94,20 @@ def test_issue34_small_tables_regenerate(folder, methods, tmp_path, capsys):
     _tables_regenerate(folder, tmp_path, capsys, "--methods", methods)
 
 
+def test_tables_name_a_methods_entry_that_orders_no_row(tmp_path, capsys):
+    """A misspelt --methods entry (here an override set the store does not hold) still writes the tables, and says so."""
+    root = tmp_path / "r"
+    root.mkdir()
+    shutil.copyfile(TABLES / "small_paper_R" / "results.jsonl", root / "results.jsonl")
+    args = ["tables", "--root", str(root), "--out", str(tmp_path / "out"), "--methods"]
+    assert run_cli(TOOL.run, [*args, "nimbus-paper[residual_tophat=0.3],3dgs"]) == 0
+    err = capsys.readouterr().err
+    assert "no method named nimbus-paper[residual_tophat=0.3];" in err and "nimbus-paper[residual_tophat=0.03]" in err
+    assert (tmp_path / "out" / "weather_R.md").exists()
+    assert run_cli(TOOL.run, [*args, "nimbus-paper[residual_tophat=0.03],3dgs"]) == 0
+    assert "--methods" not in capsys.readouterr().err
+
+
 def test_validation_tiny_summaries_regenerate():
     """Every ``tools.validation_cells --summary`` block in tables/validation_tiny/README.md is followed by its output."""
     from tools.validation_cells import summary

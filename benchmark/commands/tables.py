@@ -7,6 +7,7 @@ beside them where the paper has the layout; :mod:`benchmark.tables.writer` rende
 from __future__ import annotations
 
 import argparse
+import sys
 import warnings
 from pathlib import Path
 from typing import Callable, NamedTuple
@@ -57,7 +58,9 @@ EXAMPLE = "nimbus-bench tables --root bench_runs --out tables/"
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--root", default="bench_runs", help="benchmark folder holding results.jsonl")
     p.add_argument("--out", default="tables", help="folder to write the tables into")
-    p.add_argument("--methods", default=None, help="row order: comma list of methods listed first")
+    p.add_argument("--methods", default=None,
+                   help="row order: comma list of methods listed first; a method the store holds under several sets of "
+                        "--set overrides is named with them, e.g. nimbus[lambda_dehaze=0]")
     p.add_argument("--parquet", metavar="FILE", default=None, help="also export the store as Parquet")
 
 
@@ -80,6 +83,11 @@ def run(args: argparse.Namespace) -> int:
         warnings.simplefilter("ignore", UserWarning)
         df = load_results(args.root)
     order = [m.strip() for m in args.methods.split(",")] if args.methods else list(DEFAULT_METHODS)
+    if args.methods:  # a misspelt name would only move no row: say so
+        unknown = [m for m in order if m not in set(df["method"])]
+        if unknown:
+            print(f"--methods: the store has no method named {', '.join(unknown)}; it orders no row "
+                  f"(methods there: {', '.join(sorted(set(df['method'].dropna())))})", file=sys.stderr)
     # Every table is computed before the first file is written, so a refused store writes nothing.
     sets, skipped = [], []
     for layout in LAYOUTS:
