@@ -682,6 +682,7 @@ def _train_cell(cell: Cell, root: Path, options: CellOptions) -> dict:
         **({"psnr_vs_input": None, "ssim_vs_input": None} if results.get("eval_reference") == "clean" else
            {"psnr_vs_input": results.get("psnr"), "ssim_vs_input": results.get("ssim")}),
         "train_time_s": results.get("train_time_s"), "peak_memory_mb": results.get("peak_memory_mb"),
+        "threads": results.get("threads"),
         "num_gaussians": results.get("num_gaussians"), "num_params": num_params, "num_params_source": source,
         "render_fps": results.get("render_fps"), "iterations": results.get("iterations"),
         "device": results.get("device"), "rasterizer": results.get("rasterizer"), "config": config_record(config),

@@ -110,6 +110,8 @@ class ResultRecord(Schema):
     train_time_s: Measure = None
     wall_time_s: Measure = None
     peak_memory_mb: Measure = None
+    threads: Optional[int] = Field(default=None, description="torch CPU threads the training ran with (results "
+                                   "at small size move with it by float rounding; absent in old records)")
     render_fps: Measure = None
     num_gaussians: Optional[int] = None
     num_params: Optional[int] = None

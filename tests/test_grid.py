@@ -171,6 +171,7 @@ def test_local_run_records_and_scores_against_clean_views(finished):
         assert len(rec["config_hash"]) == 64 and rec["config"]["iterations"] == 5
         assert {"nimbus", "torch", "numpy", "pycolmap", "cpu_isa"} <= rec["versions"].keys()
         assert rec["peak_memory_mb"] > 0 and rec["render_fps"] > 0 and rec["started_at"] <= rec["finished_at"]
+        assert isinstance(rec["threads"], int) and rec["threads"] >= 1  # what trained it (results move with it)
         assert not list((root / "runs").glob("*.partial"))
 
 

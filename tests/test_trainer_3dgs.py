@@ -68,6 +68,7 @@ def test_training_is_deterministic_and_writes_outputs(scene, tmp_path):
     assert set(res["per_view"]) == {v.name for v in scene.test_views}
     assert math.isfinite(res["psnr"]) and 0 < res["ssim"] <= 1 and res["num_gaussians"] > 0
     assert res["train_time_s"] > 0 and res["peak_memory_mb"] > 0
+    assert res["threads"] == torch.get_num_threads()  # small runs move with the thread count: the record says it
     # What the figures depend on (issue 14 item 11): library versions and the vector ISA torch dispatched to.
     assert {"torch", "numpy", "opencv-contrib-python-headless", "pycolmap"} <= res["versions"].keys()
     assert res["versions"]["cpu_isa"] in {"avx512", "avx2", "generic", "unknown"}

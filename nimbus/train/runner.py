@@ -481,7 +481,8 @@ class Runner:
         results = {
             "method": self.method_name, "scene": self.scene_path, "seed": self.seed,
             "iterations": self.iteration, "train_time_s": round(self.train_time, 3),
-            "peak_memory_mb": round(peak_memory_mb(self.device), 1), "num_gaussians": self.method.num_gaussians,
+            "peak_memory_mb": round(peak_memory_mb(self.device), 1), "threads": torch.get_num_threads(),
+            "num_gaussians": self.method.num_gaussians,
             "eval_split": ev["split"], "eval_reference": ev["reference"], "psnr": ev["psnr"], "ssim": ev["ssim"],
             "render_fps": ev["render_fps"],
             # Validity masks: test views scored over their valid pixels only, training views whose
