@@ -462,6 +462,23 @@ def method_label(record: dict) -> str:
     return f"{record.get('method')}[{','.join(f'{k}={v}' for k, v in sorted(overrides.items()))}]"
 
 
+def split_method_labels(spec: str) -> list[str]:
+    """A comma list of methods and :func:`method_label` labels, split at the commas outside brackets only:
+    ``"nimbus-paper[a=1,b=2],3dgs"`` -> ``["nimbus-paper[a=1,b=2]", "3dgs"]`` (a label's overrides are joined by
+    commas too). Blank items are dropped."""
+    items, depth, start = [], 0, 0
+    for i, ch in enumerate(spec):
+        if ch == "[":
+            depth += 1
+        elif ch == "]":
+            depth = max(depth - 1, 0)
+        elif ch == "," and depth == 0:
+            items.append(spec[start:i])
+            start = i + 1
+    items.append(spec[start:])
+    return [item.strip() for item in items if item.strip()]
+
+
 def export_parquet(root: str | os.PathLike, out: str | os.PathLike) -> Path:
     """Write the counting records' scalar columns (and per-view values as JSON text) as Parquet, atomically."""
     import io

@@ -106,6 +106,20 @@ def test_tables_name_a_methods_entry_that_orders_no_row(tmp_path, capsys):
     assert (tmp_path / "out" / "weather_R.md").exists()
     assert run_cli(TOOL.run, [*args, "nimbus-paper[residual_tophat=0.03],3dgs"]) == 0
     assert "--methods" not in capsys.readouterr().err
+    # a label of several overrides holds commas of its own: the list splits only outside brackets
+    many = "nimbus-paper[consistency_neighbours=4,residual_outlier_sigmas=3,residual_tophat=0.03]"
+    assert run_cli(TOOL.run, [*args, f"3dgs,{many}"]) == 0
+    assert "--methods" not in capsys.readouterr().err
+    rows = [line.split(" | ")[0].lstrip("| ") for line in (tmp_path / "out" / "weather_R.md").read_text().splitlines()
+            if "trained on R" in line]
+    assert rows[:2] == ["3dgs", many]
+
+
+def test_split_method_labels():
+    from benchmark.store import split_method_labels
+
+    assert split_method_labels(" a[x=1,y=2] , b,,c[z=3]") == ["a[x=1,y=2]", "b", "c[z=3]"]
+    assert split_method_labels("nimbus") == ["nimbus"] and split_method_labels(" , ") == []
 
 
 def test_validation_tiny_summaries_regenerate():

@@ -60,13 +60,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="tables", help="folder to write the tables into")
     p.add_argument("--methods", default=None,
                    help="row order: comma list of methods listed first; a method the store holds under several sets of "
-                        "--set overrides is named with them, e.g. nimbus[lambda_dehaze=0]")
+                        "--set overrides is named with them, e.g. nimbus[lambda_dehaze=0] or nimbus[a=1,b=2] (keys "
+                        "sorted)")
     p.add_argument("--parquet", metavar="FILE", default=None, help="also export the store as Parquet")
 
 
 def run(args: argparse.Namespace) -> int:
     from benchmark.grid import DEFAULT_METHODS
-    from benchmark.store import export_parquet, load_results, require_store
+    from benchmark.store import export_parquet, load_results, require_store, split_method_labels
     from benchmark.tables.writer import Written, with_paper, write_tables
     from nimbus.utils.fs import check_output_dir, refuse_overlap
 
@@ -82,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     with warnings.catch_warnings():  # a truncated last line is reported once, below
         warnings.simplefilter("ignore", UserWarning)
         df = load_results(args.root)
-    order = [m.strip() for m in args.methods.split(",")] if args.methods else list(DEFAULT_METHODS)
+    order = split_method_labels(args.methods) if args.methods else list(DEFAULT_METHODS)
     if args.methods:  # a misspelt name would only move no row: say so
         unknown = [m for m in order if m not in set(df["method"])]
         if unknown:
