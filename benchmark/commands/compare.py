@@ -23,7 +23,7 @@ def run(args: argparse.Namespace) -> int:
     import warnings
 
     from benchmark.grid import DEFAULT_METHODS
-    from benchmark.store import load_results, require_store
+    from benchmark.store import load_results, require_store, split_method_labels
     from benchmark.tables.agreement import compare
     from benchmark.tables.writer import to_csv, to_latex, to_markdown
     from nimbus.errors import NimbusError
@@ -40,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         frames = [load_results(args.root), load_results(args.against)]
-    order = [m.strip() for m in args.methods.split(",")] if args.methods else list(DEFAULT_METHODS)
+    order = split_method_labels(args.methods) if args.methods else list(DEFAULT_METHODS)
     table, lines = compare(*frames, names=names, method_order=order)
     for line in lines:
         print(line)

@@ -31,8 +31,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from benchmark.grid import DEFAULT_METHODS
     from benchmark.html_report import ReportOptions, build_report
+    from benchmark.store import split_method_labels
 
-    order = [m.strip() for m in args.methods.split(",")] if args.methods else list(DEFAULT_METHODS)
+    order = split_method_labels(args.methods) if args.methods else list(DEFAULT_METHODS)
     options = ReportOptions(views=args.views, thumb_width=args.thumb_width, copy_full=args.copy_full,
                             tradeoff=Path(args.tradeoff) if args.tradeoff else None,
                             stability=Path(args.stability) if args.stability else None, method_order=tuple(order))
