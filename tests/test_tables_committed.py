@@ -87,6 +87,8 @@ def test_small_hazy_tables_regenerate(tmp_path, capsys):
     ("small_street_S_seeds", "nimbus,3dgs,robust-3dgs"),  # the smallest haze-free margin, three training seeds
     ("small_paper_H", "nimbus-paper,nimbus-paper[lambda_dehaze=1],3dgs"),  # nimbus-paper at small size, under H
     ("small_paper_R", "nimbus-paper,nimbus-paper[residual_tophat=0.03],3dgs"),  # and under R
+    ("small_paper_more", "nimbus-paper,nimbus-paper[lambda_dehaze=1],nimbus-paper[components=auto,consistency_neighbours=4,"
+                         "residual_outlier_sigmas=3,residual_tophat=0.03],3dgs,nimbus,restore-3dgs"),  # the other five settings
     ("small_physical", "nimbus,restore-3dgs,3dgs"),  # one-medium (physical) haze, garden and street, H and H+R+S
 ])
 def test_issue34_small_tables_regenerate(folder, methods, tmp_path, capsys):
