@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from benchmark.commands import METHODS_ORDER_HELP
+
 HELP = ("compare two results stores on the cells both ran (another device, CPU, torch or code): each figure's "
         "difference, and whether the methods' order holds")
 EXAMPLE = "nimbus-bench compare --root bench_cpu --against bench_cuda --names cpu,cuda --out compare/"
@@ -16,7 +18,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--names", default="A,B", help="the two stores' names in the table, A first")
     p.add_argument("--out", default=None,
                    help="folder for compare.md / .tex / .csv; without it only the summary is printed")
-    p.add_argument("--methods", default=None, help="row order: comma list of methods listed first")
+    p.add_argument("--methods", default=None, help=METHODS_ORDER_HELP)
 
 
 def run(args: argparse.Namespace) -> int:

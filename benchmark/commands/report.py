@@ -6,6 +6,7 @@ import argparse
 import shlex
 from pathlib import Path
 
+from benchmark.commands import METHODS_ORDER_HELP
 from benchmark.html_report import DEFAULT_VIEWS, THUMB_WIDTH
 
 HELP = ("write an HTML report of the results store: summary table, test views of every method side by side, "
@@ -21,7 +22,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--thumb-width", type=int, default=THUMB_WIDTH, help="largest thumbnail width in pixels")
     p.add_argument("--copy-full", action="store_true",
                    help="copy the full-size images into --out (portable, larger) instead of linking into the store")
-    p.add_argument("--methods", default=None, help="comma list of methods listed first (default: nimbus, 3dgs)")
+    p.add_argument("--methods", default=None, help=METHODS_ORDER_HELP + " (default: nimbus, 3dgs)")
     p.add_argument("--tradeoff", default=None, metavar="DIR",
                    help="folder of `nimbus-bench tradeoff` outputs (default: looked for in ROOT and ROOT/*)")
     p.add_argument("--stability", default=None, metavar="DIR",

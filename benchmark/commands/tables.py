@@ -12,6 +12,7 @@ import warnings
 from pathlib import Path
 from typing import Callable, NamedTuple
 
+from benchmark.commands import METHODS_ORDER_HELP
 from benchmark.tables import ablation, comparison, margins, provenance, runtime
 from benchmark.tables.model import Combined, Table
 from nimbus.errors import NimbusError
@@ -58,10 +59,7 @@ EXAMPLE = "nimbus-bench tables --root bench_runs --out tables/"
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--root", default="bench_runs", help="benchmark folder holding results.jsonl")
     p.add_argument("--out", default="tables", help="folder to write the tables into")
-    p.add_argument("--methods", default=None,
-                   help="row order: comma list of methods listed first; a method the store holds under several sets of "
-                        "--set overrides is named with them, e.g. nimbus[lambda_dehaze=0] or nimbus[a=1,b=2] (keys "
-                        "sorted)")
+    p.add_argument("--methods", default=None, help=METHODS_ORDER_HELP)
     p.add_argument("--parquet", metavar="FILE", default=None, help="also export the store as Parquet")
 
 
@@ -85,10 +83,11 @@ def run(args: argparse.Namespace) -> int:
         df = load_results(args.root)
     order = split_method_labels(args.methods) if args.methods else list(DEFAULT_METHODS)
     if args.methods:  # a misspelt name would only move no row: say so
-        unknown = [m for m in order if m not in set(df["method"])]
+        known = set(df["method"].dropna())
+        unknown = [m for m in order if m not in known]
         if unknown:
             print(f"--methods: the store has no method named {', '.join(unknown)}; it orders no row "
-                  f"(methods there: {', '.join(sorted(set(df['method'].dropna())))})", file=sys.stderr)
+                  f"(methods there: {', '.join(sorted(known))})", file=sys.stderr)
     # Every table is computed before the first file is written, so a refused store writes nothing.
     sets, skipped = [], []
     for layout in LAYOUTS:
