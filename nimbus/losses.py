@@ -24,17 +24,28 @@ def l1(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None) -> to
 
 
 def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_dssim: float,
-                     mask: torch.Tensor | None = None) -> torch.Tensor:
+                     mask: torch.Tensor | None = None, gt_moments: torch.Tensor | None = None) -> torch.Tensor:
     """(1 - lambda) L1 + lambda (1 - SSIM), the 3DGS loss (lambda 0.2; NimbusGS uses 0.4).
 
     ``pred``, ``gt``: ``(H, W, 3)``.  ``mask``: bool ``(H, W)``, True where the pixel counts
     (a view's validity mask); both terms are then means over the valid pixels and
     neither the target's nor the render's colours in invalid pixels reach the loss or its
     gradient (see :func:`nimbus.metrics.masked_pair`).  The caller guarantees at least one valid pixel.
+    ``gt_moments``: :func:`loss_target_moments` of this ``gt`` (or None), for a target used at many steps:
+    the same loss, bit for bit, in less time.
     """
     # Masked views keep the torch ops: the kernel computes the masked loss as well (to rounding), but
     # the masked-training figures (tests/test_masks.py's occluder run) sit close to their margins
     # and were recorded with these ops.
     if mask is None and train_step.loss_usable(pred, gt, mask):
-        return train_step.photometric_loss(pred, gt, lambda_dssim, loss_taps(), SSIM_C1, SSIM_C2)
+        return train_step.photometric_loss(pred, gt, lambda_dssim, loss_taps(), SSIM_C1, SSIM_C2,
+                                           gt_moments=gt_moments)
     return (1.0 - lambda_dssim) * l1(pred, gt, mask) + lambda_dssim * (1.0 - mean_ssim(pred, gt, mask))
+
+
+def loss_target_moments(gt: torch.Tensor) -> torch.Tensor | None:
+    """What :func:`photometric_loss` can reuse of an unmasked target ``gt`` at every step (its SSIM's filtered
+    moments, ``[2, C, H, W]``), or None where the loss would not use it (the torch ops compute that loss)."""
+    if not train_step.loss_usable(gt, gt, None):
+        return None
+    return train_step.target_moments(gt, loss_taps())

@@ -196,20 +196,43 @@ def test_ggs_rescales_gradients_and_densification_statistics(hazy, tmp_path):
     t = runner.method
     vi, view = 0, t.train_views[0]
     step = t.cfg.m_init + 1
-    render = t.render(view.camera)
     gt = t.train_images[vi]
-    loss, pred = t.loss(step, vi, render, gt)
-    loss.backward()
+
+    def backward(fold: bool):
+        """One step's backward and GGS, with the weights folded into the rasterizer's backward or not."""
+        for group in t.param_groups():  # the Gaussians' and the medium's
+            for p in group["params"]:
+                p.grad = None
+        render = t.render(view.camera)
+        loss, pred = t.loss(step, vi, render, gt)
+        t.before_backward(step, vi, render, pred, gt)
+        if not fold:
+            render["meta"]["row_scale"].weights = None  # as a backend without the fold: GGS scales afterwards
+        loss.backward()
+        meta = render["meta"]
+        info = {"means2d_grad": means2d_grad(meta), "radii": meta["radii"], "visible": meta["visible"],
+                "width": view.camera.width, "height": view.camera.height}
+        t.reweight_gradients(step, vi, render, pred, gt, info)
+        return render, pred, info, {k: v.grad.clone() for k, v in t.params.tensors.items()}
+
+    # Reference: the unscaled gradients of the same step (GGS off), and the weights GGS computes.
+    t.use_ggs = False
+    render, pred, _, grads = backward(fold=False)
+    t.use_ggs = True
     meta = render["meta"]
-    info = {"means2d_grad": means2d_grad(meta), "radii": meta["radii"], "visible": meta["visible"],
-            "width": view.camera.width, "height": view.camera.height}
-    grads = {k: v.grad.clone() for k, v in t.params.tensors.items()}
     w, _ = ggs_weights(meta["depths"], meta["radii"], meta["means2d"].detach(), (pred - gt).abs().sum(-1),
                        meta["visible"], t.ggs)
     assert not torch.allclose(w, torch.ones_like(w))
-    t.reweight_gradients(step, vi, render, pred, gt, info)
-    torch.testing.assert_close(t.params["means"].grad, grads["means"] * w[:, None])
-    torch.testing.assert_close(t.params["sh_dc"].grad, grads["sh_dc"] * w[:, None, None])
+    # Scaled afterwards (the pass with the guard's check), or by the rasterizer's backward: the same bits.
+    _, _, _, after = backward(fold=False)
+    assert t._checked_grads is not None
+    render, pred, info, folded = backward(fold=True)
+    meta = render["meta"]
+    assert meta["row_scale"].applied == 1 and t._checked_grads is None
+    for name in grads:
+        assert torch.equal(after[name], folded[name]), name
+    torch.testing.assert_close(folded["means"], grads["means"] * w[:, None], rtol=0, atol=0)
+    torch.testing.assert_close(folded["sh_dc"], grads["sh_dc"] * w[:, None, None], rtol=0, atol=0)
     torch.testing.assert_close(info["grad2d_weight"], w)
     # The strategy accumulates the weighted statistic (densifying later, not at this step; no reset).
     strategy = dataclasses.replace(t.strategy, densify_from=step, densify_until=10**9, opacity_reset_interval=10**9)
@@ -220,16 +243,16 @@ def test_ggs_rescales_gradients_and_densification_statistics(hazy, tmp_path):
     ndc = ndc_grad_norm(means2d_grad(meta), view.camera.width, view.camera.height)
     vis = meta["visible"]
     torch.testing.assert_close(weighted["grad_accum"][vis], plain["grad_accum"][vis] + (w[vis] - 1) * ndc[vis])
-    # GGS's pass is the gradient guard of what it scaled; the guard still checks the medium's gradients.
-    assert t._grads_finite() and t._checked_grads is None
+    # The guard checks every gradient, whichever way GGS scaled them (its pass checks what it scaled).
     medium = [p for group in t.medium.param_groups() for p in group["params"] if p.grad is not None]
     assert medium
-    for poisoned in (t.params["sh_dc"], medium[0]):
-        keep = poisoned.grad.clone()
-        poisoned.grad.view(-1)[0] = float("nan")
-        t.reweight_gradients(step, vi, render, pred, gt, info)
-        assert not t._grads_finite()
-        poisoned.grad.copy_(keep)
+    for fold in (True, False):
+        for poisoned in ("sh_dc", "medium"):
+            backward(fold)
+            assert t._grads_finite() and t._checked_grads is None
+            target = t.params["sh_dc"] if poisoned == "sh_dc" else medium[0]
+            target.grad.view(-1)[0] = float("nan")
+            assert not t._grads_finite(), (fold, poisoned)
 
 
 def _constant_scene(scene, value):
@@ -503,3 +526,25 @@ def test_dehazed_view_prior_on_surfaces_only_leaves_the_sky_out(hazy, tmp_path, 
         all_sky_without = float(m.loss(1, vi, render, gt)[0])
         m.prior_clean = prior
         assert float(m.loss(1, vi, render, gt)[0]) == pytest.approx(all_sky_without, rel=1e-6)  # no prior term
+
+
+def test_prior_moments_are_kept_per_view_and_change_no_bit(hazy, tmp_path, monkeypatch):
+    import nimbus.methods.nimbusgs.method as nimbus_method
+
+    runner = _nimbus(hazy, _cfg(iterations=4, m_init=2), tmp_path / "run")
+    runner.run()
+    t = runner.method
+    assert t.prior_clean is not None and t._prior_cache  # training used the prior and kept its moments
+    vi, view = 1, t.train_views[1]
+    step = t.cfg.m_init + 1
+    render = t.render(view.camera)
+    kept = t.loss(step, vi, render, t.train_images[vi])[0]
+    assert t._prior_cache[vi] is not None
+    monkeypatch.setattr(nimbus_method, "PRIOR_MOMENTS_BUDGET", 0)
+    t._prior_cache.clear()
+    fresh = t.loss(step, vi, render, t.train_images[vi])[0]
+    assert t._prior_cache == {vi: None}  # past the budget: filtered at every step
+    assert torch.equal(kept, fresh)
+    g_kept = torch.autograd.grad(kept, render["rgb"], retain_graph=True)[0]
+    g_fresh = torch.autograd.grad(fresh, render["rgb"])[0]
+    assert torch.equal(g_kept, g_fresh)

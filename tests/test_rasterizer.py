@@ -459,7 +459,9 @@ def test_every_backend_returns_the_same_meta(name):
     n = 28
     gs = with_edge_cases(make_gaussians(20, seed=41, dtype=torch.float32)).to(device).requires_grad_()
     rgb, depth, alpha, meta = rasterize(gs, CAM, background=BG, backend=name, config=DEFAULT)
-    assert set(meta) == {"means2d", "radii", "depths", "visible", "num_intersections", "backend", "width", "height"}
+    assert set(meta) == {"means2d", "radii", "depths", "visible", "num_intersections", "backend", "width", "height",
+                         "row_scale"}
+    assert (meta["row_scale"] is not None) == (name == "cpp")  # the only backend that folds gradient factors
     assert meta["backend"] == name and (meta["width"], meta["height"]) == (W, H)
     assert rgb.shape == (H, W, 3) and depth.shape == (H, W) and alpha.shape == (H, W)
     assert meta["means2d"].shape == (n, 2) and meta["depths"].shape == (n,)
@@ -511,6 +513,35 @@ def _needs_cpp():
     from nimbus.kernels import raster
 
     return raster
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("degree", [0, 3])
+def test_cpp_row_scale_is_scaling_the_gradients_afterwards_bit_for_bit(dtype, degree):
+    _needs_cpp()
+    gs = with_edge_cases(make_gaussians(40, seed=50 + degree, dtype=dtype)).requires_grad_()
+    n = len(gs)
+    w = torch.rand(n, generator=torch.Generator().manual_seed(3), dtype=dtype) * 2.5 + 0.5
+    w[:4] = 1.0
+    params = list(gs.tensors().values())
+
+    def grads(factors):
+        rgb, depth, alpha, meta = rasterize(gs, CAM, sh_degree=degree, background=BG, backend="cpp", config=DEFAULT)
+        assert meta["row_scale"] is not None
+        meta["row_scale"].weights = factors  # set after the forward, before the backward: what GGS does
+        out = torch.autograd.grad(rgb.square().sum() + depth.sum() + alpha.sum(), params, allow_unused=True)
+        return out, meta["row_scale"].applied
+
+    plain, applied_plain = grads(None)
+    scaled, applied = grads(w)
+    assert (applied_plain, applied) == (0, 1)
+    for name, a, b in zip(gs.tensors(), plain, scaled):
+        if a is None:  # degree 0: no gradient for the higher bands either way
+            assert b is None, name
+            continue
+        assert torch.equal(a.mul(w.reshape((n,) + (1,) * (a.dim() - 1))), b), name
+    with pytest.raises(NimbusError, match="RowScale.weights must be a"):
+        grads(w[:-1])
 
 
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])

@@ -97,11 +97,50 @@ def test_bitwise_the_same_for_any_thread_count():
     assert torch.equal(v1, v2) and torch.equal(g1, g2)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("shape", [(70, 90, 3), (5, 4, 3), (1, 7, 1), (40, 13, 2)])
+@pytest.mark.parametrize("masked", [False, True])
+def test_cached_target_moments_give_the_same_loss_and_gradient_bit_for_bit(dtype, shape, masked):
+    pred, gt = pair(*shape[:2], c=shape[2], seed=8, dtype=dtype)
+    mask = None
+    if masked:
+        mask = torch.ones(shape[:2], dtype=torch.bool)
+        mask[:, 0] = False
+    moments = train_step.target_moments(gt, loss_taps(), mask)
+    assert moments.shape == (2, shape[2]) + shape[:2] and moments.dtype == dtype
+    v0, g0 = value_and_grad(kernel_loss, pred, gt, 0.4, mask)
+    cached = lambda p, g, lam, m: train_step.photometric_loss(p, g, lam, loss_taps(), SSIM_C1, SSIM_C2, m,  # noqa: E731
+                                                              gt_moments=moments)
+    v1, g1 = value_and_grad(cached, pred, gt, 0.4, mask)
+    assert torch.equal(v0, v1) and torch.equal(g0, g1)
+    # The first plane is the filtered target: at the centre of a constant 9x9 image, taps 1..9 of 11 each way.
+    flat = torch.full((9, 9, 1), 0.5, dtype=dtype)
+    m = train_step.target_moments(flat, loss_taps())
+    assert float(m[0, 0, 4, 4]) == pytest.approx(0.5 * float(loss_taps()[1:10].sum()) ** 2, rel=1e-5)
+
+
+def test_loss_target_moments_are_none_where_the_torch_loss_runs():
+    from nimbus.losses import loss_target_moments
+
+    pred, gt = pair(12, 10, seed=9, dtype=torch.float32)
+    moments = loss_target_moments(gt)
+    assert moments is not None
+    p = pred.clone().requires_grad_(True)
+    q = pred.clone().requires_grad_(True)
+    a, b = photometric_loss(p, gt, 0.2), photometric_loss(q, gt, 0.2, gt_moments=moments)
+    a.backward(), b.backward()
+    assert torch.equal(a, b) and torch.equal(p.grad, q.grad)
+    assert loss_target_moments(gt.to(torch.float16)) is None  # no kernel for half precision: nothing to keep
+    wrong = train_step.target_moments(gt[:5], loss_taps())
+    with pytest.raises(RuntimeError, match="gt_moments must be empty or target_moments"):
+        photometric_loss(pred.clone().requires_grad_(True), gt, 0.2, gt_moments=wrong)
+
+
 def test_photometric_loss_takes_the_kernel_only_where_it_applies(monkeypatch):
     pred, gt = pair(20, 24, seed=7)
     calls = []
     real = train_step.photometric_loss
-    monkeypatch.setattr(train_step, "photometric_loss", lambda *a: calls.append(1) or real(*a))
+    monkeypatch.setattr(train_step, "photometric_loss", lambda *a, **k: calls.append(1) or real(*a, **k))
     v = photometric_loss(pred.requires_grad_(True), gt, 0.2)
     assert calls and float(v) == pytest.approx(float(torch_loss(pred, gt, 0.2)), rel=1e-12)
     calls.clear()

@@ -58,8 +58,8 @@ from torch.autograd.function import once_differentiable
 from nimbus.errors import NimbusError
 from nimbus.kernels.extension import Extension
 
-__all__ = ["available", "load_error", "composite", "project_and_shade", "bin_gaussians", "cpu_isa", "cpu_isas",
-           "set_cpu_isa", "CPU_ISAS", "ISA_ENV", "EXTENSION"]
+__all__ = ["available", "load_error", "composite", "project_and_shade", "bin_gaussians", "RowScale", "cpu_isa",
+           "cpu_isas", "set_cpu_isa", "CPU_ISAS", "ISA_ENV", "EXTENSION"]
 
 #: Environment variable that forces the compositing kernel's instruction-set clone.
 ISA_ENV = "NIMBUS_CPU_ISA"
@@ -273,16 +273,37 @@ def composite(
 # --------------------------------------------------------------------------------------
 # Fused projection + SH shading, and tile binning (csrc/project.cpp)
 # --------------------------------------------------------------------------------------
+class RowScale:
+    """Per-Gaussian factors for the parameter gradients of one :func:`project_and_shade` call, set between its
+    forward and its backward.
+
+    A caller that will multiply row ``i`` of every Gaussian parameter's gradient by ``w[i]`` after
+    ``backward`` (NimbusGS's GGS) can set :attr:`weights` instead, before ``backward``: the projection's
+    backward then writes the scaled gradients directly, the same bits as ``grad.mul_(w)`` afterwards
+    (each gradient rounded to the dtype, then multiplied in the dtype), without a second pass over them.
+    Exact only when this call's backward is the sole source of those gradients, and for finite factors;
+    :attr:`applied` counts the backward passes that used the factors, so that the caller can tell.
+    """
+
+    __slots__ = ("weights", "applied")
+
+    def __init__(self) -> None:
+        #: ``[N]`` tensor of the Gaussians' dtype (CPU, contiguous), or None: no scaling.
+        self.weights: Tensor | None = None
+        self.applied = 0
+
+
 class _ProjectShade(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, log_scales, opacity_logits, sh_dc, sh_rest, viewmat, K, width, height,
-                sh_degree, proj):
+                sh_degree, proj, row_scale):
         args = (viewmat, K, width, height, sh_degree, proj.near, proj.far, proj.eps2d, proj.fov_clamp,
                 proj.radius_sigmas)
         means2d, conics, colors, opacities, depths, radii = torch.ops.nimbus_project.project_forward(
             means, quats, log_scales, opacity_logits, sh_dc, sh_rest, *args)
         ctx.save_for_backward(means, quats, log_scales, opacity_logits, sh_dc, sh_rest, radii)
         ctx.args = args
+        ctx.row_scale = row_scale
         ctx.mark_non_differentiable(radii)
         return means2d, conics, colors, opacities, depths, radii
 
@@ -295,17 +316,26 @@ class _ProjectShade(torch.autograd.Function):
         def grad(g, *shape):  # an output that did not reach the loss has no gradient
             return torch.zeros((n,) + shape, dtype=means.dtype) if g is None else g.contiguous()
 
+        holder = ctx.row_scale
+        scale = None if holder is None else holder.weights
+        if scale is not None:
+            if scale.shape != (n,) or scale.dtype != means.dtype or scale.device.type != "cpu":
+                raise NimbusError(f"RowScale.weights must be a [{n}] CPU {means.dtype} tensor, got "
+                                  f"{tuple(scale.shape)} {scale.dtype} on {scale.device}")
+            holder.applied += 1
         grads = torch.ops.nimbus_project.project_backward(
             means, quats, log_scales, opacity_logits, sh_dc, sh_rest, *ctx.args, radii,
-            grad(g_means2d, 2), grad(g_conics, 3), grad(g_colors, 3), grad(g_opac), grad(g_depths))
+            grad(g_means2d, 2), grad(g_conics, 3), grad(g_colors, 3), grad(g_opac), grad(g_depths),
+            means.new_empty(0) if scale is None else scale.contiguous())
         if ctx.args[4] == 0:  # as in the torch path, unused higher bands get no gradient at degree 0
             grads = grads[:5] + (None,)
-        return tuple(grads) + (None,) * 6
+        return tuple(grads) + (None,) * 7
 
 
 def project_and_shade(means: Tensor, quats: Tensor, log_scales: Tensor, opacity_logits: Tensor, sh_dc: Tensor,
                       sh_rest: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int, sh_degree: int,
-                      config) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+                      config, row_scale: RowScale | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor,
+                                                                          Tensor]:
     """Projection (:func:`nimbus.render.projection.project_gaussians`) and colour/opacity
     (:func:`nimbus.render.sh.sh_colors`, sigmoid) of N Gaussians in one compiled pass.
 
@@ -317,6 +347,8 @@ def project_and_shade(means: Tensor, quats: Tensor, log_scales: Tensor, opacity_
     K : Tensor [3, 3]         intrinsics (no gradient).
     width, height, sh_degree : int
     config : ProjectionConfig
+    row_scale : RowScale, optional
+        Factors the backward multiplies the parameters' gradients by, when set before it runs.
 
     Returns
     -------
@@ -331,7 +363,7 @@ def project_and_shade(means: Tensor, quats: Tensor, log_scales: Tensor, opacity_
         raise TypeError(f"project_and_shade: float32 or float64 expected, got {dtype}")
     tensors = [t.contiguous() for t in (means, quats, log_scales, opacity_logits, sh_dc, sh_rest)]
     return _ProjectShade.apply(*tensors, viewmat.detach(), K.detach(), int(width), int(height), int(sh_degree),
-                               config)
+                               config, row_scale)
 
 
 def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int,

@@ -24,7 +24,7 @@ from torch.autograd.function import once_differentiable
 
 from nimbus.kernels.extension import Extension
 
-__all__ = ["loss_usable", "photometric_loss", "all_finite", "scale_rows_all_finite", "EXTENSION"]
+__all__ = ["loss_usable", "photometric_loss", "target_moments", "all_finite", "scale_rows_all_finite", "EXTENSION"]
 
 #: train_step.cpp (torch.ops.nimbus_train_step).
 EXTENSION = Extension("nimbus_train_step", ("train_step.cpp",), kernel="training-step kernels (loss, gradient check)",
@@ -44,9 +44,9 @@ def loss_usable(pred: Tensor, gt: Tensor, mask: Tensor | None) -> bool:
 
 class _PhotometricLoss(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, pred, gt, mask, taps, lambda_dssim, c1, c2):
+    def forward(ctx, pred, gt, mask, taps, lambda_dssim, c1, c2, gt_moments):
         loss, grad = torch.ops.nimbus_train_step.photometric_loss(pred, gt, mask, taps, lambda_dssim, c1, c2,
-                                                            ctx.needs_input_grad[0])
+                                                                  ctx.needs_input_grad[0], gt_moments)
         ctx.save_for_backward(grad)
         return loss
 
@@ -54,11 +54,20 @@ class _PhotometricLoss(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, grad_loss):
         (grad,) = ctx.saved_tensors
-        return grad_loss * grad, None, None, None, None, None, None
+        return grad_loss * grad, None, None, None, None, None, None, None
+
+
+def target_moments(gt: Tensor, taps: Tensor, mask: Tensor | None = None) -> Tensor:
+    """The SSIM's filtered moments of a target alone, ``[2, C, H, W]`` (``F(y)``, ``F(y^2)``), for
+    :func:`photometric_loss`'s ``gt_moments``: a constant target (a training view) need not be filtered again
+    at every step.  Same arguments as there; :func:`loss_usable` must hold for ``(gt, gt, mask)``."""
+    EXTENSION.require("nimbus.kernels.train_step")
+    weight = gt.new_empty(0) if mask is None else mask.detach().to(gt.dtype).contiguous()
+    return torch.ops.nimbus_train_step.target_moments(gt.detach().contiguous(), weight, taps.detach().contiguous())
 
 
 def photometric_loss(pred: Tensor, gt: Tensor, lambda_dssim: float, taps: Tensor, c1: float, c2: float,
-                     mask: Tensor | None = None) -> Tensor:
+                     mask: Tensor | None = None, gt_moments: Tensor | None = None) -> Tensor:
     """``(1 - lambda_dssim) mean|pred - gt| + lambda_dssim (1 - mean SSIM(pred, gt))`` (0-d, pred's dtype).
 
     Parameters
@@ -73,11 +82,15 @@ def photometric_loss(pred: Tensor, gt: Tensor, lambda_dssim: float, taps: Tensor
     mask : bool Tensor [H, W], optional
         Validity mask, as :func:`nimbus.metrics.masked_pair` applies it: both images zeroed outside it,
         both means over its pixels (at least one).
+    gt_moments : Tensor [2, C, H, W], optional
+        :func:`target_moments` of this ``gt``, ``taps`` and ``mask`` (the caller's promise, not checked):
+        the same loss and gradient, bit for bit, filtering three of the SSIM's five moments instead of five.
     """
     EXTENSION.require("nimbus.kernels.train_step")
     weight = pred.new_empty(0) if mask is None else mask.detach().to(pred.dtype).contiguous()
+    cached = pred.new_empty(0) if gt_moments is None else gt_moments.detach().contiguous()
     return _PhotometricLoss.apply(pred.contiguous(), gt.detach().contiguous(), weight, taps.detach().contiguous(),
-                                  float(lambda_dssim), float(c1), float(c2))
+                                  float(lambda_dssim), float(c1), float(c2), cached)
 
 
 def _cpu_float(t: Tensor) -> bool:

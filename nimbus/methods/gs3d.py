@@ -8,8 +8,9 @@ the view order, and a complete :meth:`GaussianSplatting.train_iteration`.
 Methods that are 3DGS plus something (NimbusGS: a degradation model in front of the
 loss) derive from it and override only the points where their model enters the step,
 each a plain method with one job: :meth:`~GaussianSplatting.loss` (what the render is
-compared with), :meth:`~GaussianSplatting.reweight_gradients` (per-Gaussian gradient
-weights, handed to the strategy in ``info``), :meth:`~GaussianSplatting.param_groups` /
+compared with), :meth:`~GaussianSplatting.before_backward` and
+:meth:`~GaussianSplatting.reweight_gradients` (per-Gaussian gradient weights, handed to the
+rasterizer's backward or applied after it, and to the strategy in ``info``), :meth:`~GaussianSplatting.param_groups` /
 :meth:`~GaussianSplatting.optimizer_step` (extra optimised tensors) and
 :meth:`~GaussianSplatting.after_step` (their own schedule).  The step itself, its guards
 and its order stay here, in one place, rather than being copied.
@@ -175,6 +176,7 @@ class GaussianSplatting:
         info: dict = {}
         visible = loss.requires_grad and bool(render["meta"]["visible"].any())
         if visible:
+            self.before_backward(step, vi, render, pred, gt)
             loss.backward()
             meta = render["meta"]
             info = {"means2d_grad": means2d_grad(meta), "radii": meta["radii"], "visible": meta["visible"],
@@ -199,6 +201,10 @@ class GaussianSplatting:
         Pixels outside the view's validity mask (``self.train_masks``) take no part.
         """
         return photometric_loss(render["rgb"], gt, self.cfg.lambda_dssim, self.train_masks[view_index]), render["rgb"]
+
+    def before_backward(self, step: int, view_index: int, render: dict, pred: Tensor, gt: Tensor) -> None:
+        """Just before ``backward`` of a step that will update the Gaussians (3DGS: nothing); a method that
+        rescales gradients can hand its factors to the rasterizer here (``render["meta"]["row_scale"]``)."""
 
     def reweight_gradients(self, step: int, view_index: int, render: dict, pred: Tensor, gt: Tensor,
                            info: dict) -> None:

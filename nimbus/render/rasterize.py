@@ -136,7 +136,9 @@ def rasterize(
         ``means2d`` [N, 2] pixel-space centres whose ``.grad`` is filled by backward
         (zero rows for culled Gaussians), ``radii`` [N] int32, ``depths`` [N],
         ``visible`` [N] bool,
-        ``num_intersections`` int, ``backend`` (the one used), ``width``, ``height``.
+        ``num_intersections`` int, ``backend`` (the one used), ``width``, ``height``, and ``row_scale``: a
+        :class:`nimbus.kernels.raster.RowScale` whose ``weights``, set before ``backward``, multiply each
+        Gaussian's parameter gradients in the backward itself ("cpp" with a fixed camera), else None.
     """
     cfg = config or RasterConfig()
     viewmat, K, width, height = resolve_camera(gaussians, camera, viewmat, K, width, height)

@@ -286,13 +286,17 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
 
 // Gradients w.r.t. means [N, 3], quats [N, 4], log_scales [N, 3], opacity_logits [N],
 // sh_dc [N, 1, 3] and sh_rest [N, K, 3] (bands above the degree get zero), given those
-// w.r.t. the outputs of project_forward.
+// w.r.t. the outputs of project_forward.  row_scale: empty, or [N] factors of the dtype
+// that multiply every gradient of Gaussian i as it is written: each stored value is the
+// unscaled one rounded to the dtype, times the factor, in the dtype (the bits of scaling
+// the returned gradients afterwards, without the extra pass over them).  Entries the loop
+// leaves at zero (culled rows, bands above the degree) stay zero: equal for finite factors.
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_backward(
     const at::Tensor& means, const at::Tensor& quats, const at::Tensor& log_scales, const at::Tensor& logits,
     const at::Tensor& sh_dc, const at::Tensor& sh_rest, const at::Tensor& viewmat, const at::Tensor& K,
     int64_t width, int64_t height, int64_t degree, double near, double far, double eps2d, double fov_clamp,
     double radius_sigmas, const at::Tensor& radii, const at::Tensor& g_means2d, const at::Tensor& g_conics,
-    const at::Tensor& g_colors, const at::Tensor& g_opac, const at::Tensor& g_depths) {
+    const at::Tensor& g_colors, const at::Tensor& g_opac, const at::Tensor& g_depths, const at::Tensor& row_scale) {
   check_params(means, quats, log_scales, logits, sh_dc, sh_rest, degree);
   const Camera c = make_camera(viewmat, K, width, height, degree, near, far, eps2d, fov_clamp, radius_sigmas);
   const int64_t N = means.size(0), KR = sh_rest.size(1), nb = (degree + 1) * (degree + 1);
@@ -303,6 +307,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     TORCH_CHECK(x->scalar_type() == dtype && x->is_contiguous() && x->size(0) == N,
                 "project_backward: output gradients must be contiguous [N, ...] tensors of the inputs' dtype");
   }
+  const bool scaled = row_scale.numel() > 0;
+  TORCH_CHECK(!scaled || (row_scale.scalar_type() == dtype && row_scale.is_contiguous() && row_scale.dim() == 1 &&
+                          row_scale.size(0) == N && row_scale.device().is_cpu()),
+              "project_backward: row_scale must be empty or a contiguous CPU [N] tensor of the inputs' dtype");
   const auto opts = means.options();
   at::Tensor gm = at::empty({N, 3}, opts), gq = at::empty({N, 4}, opts), gs = at::empty({N, 3}, opts);
   at::Tensor gl = at::empty({N}, opts), gdc = at::empty({N, 1, 3}, opts), grest = at::zeros({N, KR, 3}, opts);
@@ -315,10 +323,12 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     const S *uo = g_opac.data_ptr<S>(), *uz = g_depths.data_ptr<S>();
     S *om = gm.data_ptr<S>(), *oq = gq.data_ptr<S>(), *os = gs.data_ptr<S>(), *ol = gl.data_ptr<S>();
     S *odc = gdc.data_ptr<S>(), *orest = grest.data_ptr<S>();
+    const S* sc = scaled ? row_scale.data_ptr<S>() : nullptr;
     at::parallel_for(0, N, 8192, [&](int64_t b, int64_t e) {
       Geo g;
       double B[16], dB[16][3];
       for (int64_t i = b; i < e; ++i) {
+        const S wi = scaled ? sc[i] : S(1);  // x * 1 is x: the unscaled bits when there is no factor
         for (int j = 0; j < 3; ++j) om[3 * i + j] = os[3 * i + j] = odc[3 * i + j] = 0;
         for (int j = 0; j < 4; ++j) oq[4 * i + j] = 0;
         ol[i] = 0;
@@ -330,7 +340,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
         // Colour and opacity (visible Gaussians only).
         if (rad[i] > 0) {
           const double o = 1.0 / (1.0 + std::exp(-double(pl[i])));
-          ol[i] = static_cast<S>(double(uo[i]) * o * (1 - o));
+          ol[i] = static_cast<S>(double(uo[i]) * o * (1 - o)) * wi;
           double dir[3] = {0, 0, 0}, d[3] = {0, 0, 0}, nd = 1;
           if (degree > 0) {
             double n2 = 0;
@@ -348,9 +358,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
             for (int64_t k = 1; k < nb; ++k) acc += B[k] * double(prest[(i * KR + k - 1) * 3 + ch]);
             // clamp_min passes the gradient where the input is >= the bound.
             const double gc = acc + 0.5 >= 0.0 ? double(ucol[3 * i + ch]) : 0.0;
-            odc[3 * i + ch] = static_cast<S>(B[0] * gc);
+            odc[3 * i + ch] = static_cast<S>(B[0] * gc) * wi;
             for (int64_t k = 1; k < nb; ++k) {
-              orest[(i * KR + k - 1) * 3 + ch] = static_cast<S>(B[k] * gc);
+              orest[(i * KR + k - 1) * 3 + ch] = static_cast<S>(B[k] * gc) * wi;
               const double cf = double(prest[(i * KR + k - 1) * 3 + ch]) * gc;
               for (int j = 0; j < 3; ++j) gdir[j] += cf * dB[k][j];
             }
@@ -410,8 +420,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
         gy += gv * c.fy / z;
         gz += -gu * c.fx * x / z2 - gv * c.fy * y / z2;
         for (int j = 0; j < 3; ++j) gmean[j] += c.R[j] * gx + c.R[3 + j] * gy + c.R[6 + j] * gz;
-        for (int j = 0; j < 3; ++j) om[3 * i + j] = static_cast<S>(gmean[j]);
-        for (int j = 0; j < 3; ++j) os[3 * i + j] = static_cast<S>(glog[j]);
+        for (int j = 0; j < 3; ++j) om[3 * i + j] = static_cast<S>(gmean[j]) * wi;
+        for (int j = 0; j < 3; ++j) os[3 * i + j] = static_cast<S>(glog[j]) * wi;
         // Rotation of the normalised quaternion.
         const double w = g.qn[0], qx = g.qn[1], qy = g.qn[2], qz = g.qn[3];
         const double* G = gRq;
@@ -425,9 +435,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
                       qy * G[7]);
         if (g.qnorm > kMinNorm) {
           const double dot = gqn[0] * g.qn[0] + gqn[1] * g.qn[1] + gqn[2] * g.qn[2] + gqn[3] * g.qn[3];
-          for (int j = 0; j < 4; ++j) oq[4 * i + j] = static_cast<S>((gqn[j] - g.qn[j] * dot) / g.qnorm);
+          for (int j = 0; j < 4; ++j) oq[4 * i + j] = static_cast<S>((gqn[j] - g.qn[j] * dot) / g.qnorm) * wi;
         } else {
-          for (int j = 0; j < 4; ++j) oq[4 * i + j] = static_cast<S>(gqn[j] / kMinNorm);
+          for (int j = 0; j < 4; ++j) oq[4 * i + j] = static_cast<S>(gqn[j] / kMinNorm) * wi;
         }
       }
     });

@@ -76,12 +76,64 @@ inline void filter_column(const S* plane, S* dst, int64_t y, int64_t H, int64_t 
   }
 }
 
+// The filtered moments of the target alone, F(y) and F(y^2), [2][C][H][W] in gt's dtype (y masked as in
+// photometric_loss): the same filters and order photometric_loss applies to them, so passing them back
+// as `gt_moments` gives the same bits while it filters only the three moments that depend on pred.
+at::Tensor target_moments(const at::Tensor& gt, const at::Tensor& mask, const at::Tensor& taps) {
+  TORCH_CHECK(gt.dim() == 3 && gt.device().is_cpu() && gt.is_contiguous() &&
+                  (gt.scalar_type() == at::kFloat || gt.scalar_type() == at::kDouble),
+              "target_moments: gt must be a contiguous CPU float [H, W, C] tensor");
+  TORCH_CHECK(taps.scalar_type() == at::kDouble && taps.dim() == 1 && taps.size(0) % 2 == 1 &&
+                  taps.is_contiguous(),
+              "taps must be an odd-length contiguous float64 [K] tensor");
+  const int64_t H = gt.size(0), W = gt.size(1), C = gt.size(2), HW = H * W;
+  TORCH_CHECK(H > 0 && W > 0 && C > 0, "target_moments: empty image");
+  const bool masked = mask.numel() > 0;
+  TORCH_CHECK(!masked || (mask.sizes() == at::IntArrayRef({H, W}) && mask.scalar_type() == gt.scalar_type() &&
+                          mask.is_contiguous() && mask.device().is_cpu()),
+              "mask must be empty or a contiguous CPU [H, W] tensor of gt's dtype");
+  at::Tensor out = at::empty({2, C, H, W}, gt.options());
+  AT_DISPATCH_FLOATING_TYPES(gt.scalar_type(), "target_moments", [&] {
+    using S = scalar_t;
+    const S* yp = gt.data_ptr<S>();
+    const S* mp = masked ? mask.data_ptr<S>() : nullptr;
+    const double* tp = taps.data_ptr<double>();
+    const std::vector<S> w(tp, tp + taps.size(0));
+    std::unique_ptr<S[]> mom(new S[2 * C * HW]), hmom(new S[2 * C * HW]);
+    at::parallel_for(0, C * H, kRowGrain, [&](int64_t b, int64_t e) {
+      for (int64_t row = b; row < e; ++row) {
+        const int64_t c = row / H, y = row % H;
+        for (int64_t x = 0; x < W; ++x) {
+          S g = yp[(y * W + x) * C + c];
+          if (masked) g *= mp[y * W + x];
+          const int64_t i = c * HW + y * W + x;
+          mom[i] = g;
+          mom[C * HW + i] = g * g;
+        }
+      }
+    });
+    filter_rows(mom.get(), hmom.get(), 2 * C, H, W, w);
+    S* o = out.data_ptr<S>();
+    at::parallel_for(0, C * H, kRowGrain, [&](int64_t b, int64_t e) {
+      for (int64_t row = b; row < e; ++row) {
+        const int64_t c = row / H, y = row % H;
+        for (int q = 0; q < 2; ++q)
+          filter_column(hmom.get() + (q * C + c) * HW, o + (q * C + c) * HW + y * W, y, H, W, w);
+      }
+    });
+  });
+  return out;
+}
+
 // Returns the loss (0-d) and, when need_grad, its gradient w.r.t. pred [H, W, C] (else an empty tensor).
 // mask: [H, W] of 0 / 1 in pred's dtype, or empty for none: as nimbus.metrics.masked_pair, both
-// images are multiplied by it and both means run over the valid pixels only.
+// images are multiplied by it and both means run over the valid pixels only.  gt_moments: empty, or
+// target_moments(gt, mask, taps) of this gt, mask and taps (the caller's promise; the result is then
+// the same, bit for bit, with two of the five filtered moments read instead of computed).
 std::tuple<at::Tensor, at::Tensor> photometric_loss(const at::Tensor& pred, const at::Tensor& gt,
                                                     const at::Tensor& mask, const at::Tensor& taps,
-                                                    double lambda_dssim, double c1, double c2, bool need_grad) {
+                                                    double lambda_dssim, double c1, double c2, bool need_grad,
+                                                    const at::Tensor& gt_moments) {
   TORCH_CHECK(pred.dim() == 3 && pred.sizes() == gt.sizes(), "pred and gt must be [H, W, C] of one shape");
   TORCH_CHECK(pred.scalar_type() == gt.scalar_type(), "pred and gt must share one dtype");
   TORCH_CHECK(pred.device().is_cpu() && gt.device().is_cpu(), "photometric_loss: CPU tensors only");
@@ -95,6 +147,11 @@ std::tuple<at::Tensor, at::Tensor> photometric_loss(const at::Tensor& pred, cons
   TORCH_CHECK(!masked || (mask.sizes() == at::IntArrayRef({H, W}) && mask.scalar_type() == pred.scalar_type() &&
                           mask.is_contiguous() && mask.device().is_cpu()),
               "mask must be empty or a contiguous CPU [H, W] tensor of pred's dtype");
+  const bool cached = gt_moments.numel() > 0;
+  TORCH_CHECK(!cached || (gt_moments.sizes() == at::IntArrayRef({2, C, H, W}) &&
+                          gt_moments.scalar_type() == pred.scalar_type() && gt_moments.is_contiguous() &&
+                          gt_moments.device().is_cpu()),
+              "gt_moments must be empty or target_moments(gt, mask, taps): a contiguous CPU [2, C, H, W] tensor");
   at::Tensor loss = at::empty({}, pred.options());
   at::Tensor grad = need_grad ? at::empty({H, W, C}, pred.options()) : at::empty({0}, pred.options());
   AT_DISPATCH_FLOATING_TYPES(pred.scalar_type(), "photometric_loss", [&] {
@@ -105,9 +162,12 @@ std::tuple<at::Tensor, at::Tensor> photometric_loss(const at::Tensor& pred, cons
     const double* tp = taps.data_ptr<double>();
     const std::vector<S> w(tp, tp + taps.size(0));
     const S C1 = static_cast<S>(c1), C2 = static_cast<S>(c2);
-    // Planar moments [5][C][H][W]: x, y, x^2, y^2, xy; the L1 sum per row (C * H rows).  Every
-    // element of both buffers is written before it is read: left uninitialised.
-    std::unique_ptr<S[]> mom(new S[5 * C * HW]), hmom(new S[5 * C * HW]);
+    // Planar moments [5][C][H][W]: x, x^2, xy (those that depend on pred), then y, y^2; the L1 sum per
+    // row (C * H rows).  Every element of both buffers that is read is written first: left
+    // uninitialised.  With gt_moments the last two planes are neither formed nor filtered.
+    const int planes = cached ? 3 : 5;
+    std::unique_ptr<S[]> mom(new S[planes * C * HW]), hmom(new S[planes * C * HW]);
+    const S* gm = cached ? gt_moments.data_ptr<S>() : nullptr;
     std::vector<double> row_l1(C * H, 0.0), row_ssim(C * H, 0.0);
     at::parallel_for(0, C * H, kRowGrain, [&](int64_t b, int64_t e) {
       for (int64_t row = b; row < e; ++row) {
@@ -121,16 +181,18 @@ std::tuple<at::Tensor, at::Tensor> photometric_loss(const at::Tensor& pred, cons
           }
           const int64_t i = c * HW + y * W + x;
           mom[i] = a;
-          mom[C * HW + i] = g;
-          mom[2 * C * HW + i] = a * a;
-          mom[3 * C * HW + i] = g * g;
-          mom[4 * C * HW + i] = a * g;
+          mom[C * HW + i] = a * a;
+          mom[2 * C * HW + i] = a * g;
+          if (!cached) {
+            mom[3 * C * HW + i] = g;
+            mom[4 * C * HW + i] = g * g;
+          }
           l1 += std::abs(static_cast<double>(a) - static_cast<double>(g));
         }
         row_l1[row] = l1;
       }
     });
-    filter_rows(mom.get(), hmom.get(), 5 * C, H, W, w);
+    filter_rows(mom.get(), hmom.get(), planes * C, H, W, w);
     // The moments' filtered values are no longer needed once the map and its derivatives
     // are formed: `mom` is reused for dS/dE[x], dS/dE[x^2], dS/dE[xy] (planes 0..2).
     S* dmap = mom.get();
@@ -138,11 +200,14 @@ std::tuple<at::Tensor, at::Tensor> photometric_loss(const at::Tensor& pred, cons
       std::vector<S> f(5 * W);
       for (int64_t row = b; row < e; ++row) {
         const int64_t c = row / H, y = row % H;
-        for (int q = 0; q < 5; ++q) filter_column(hmom.get() + (q * C + c) * HW, f.data() + q * W, y, H, W, w);
+        for (int q = 0; q < planes; ++q)
+          filter_column(hmom.get() + (q * C + c) * HW, f.data() + q * W, y, H, W, w);
+        const S* fy = cached ? gm + c * HW + y * W : f.data() + 3 * W;  // F(y); F(y^2) follows one plane on
+        const int64_t fyy = cached ? C * HW : W;
         double sum = 0.0;
         for (int64_t x = 0; x < W; ++x) {
-          const S mx = f[x], my = f[W + x];
-          const S sxx = f[2 * W + x] - mx * mx, syy = f[3 * W + x] - my * my, sxy = f[4 * W + x] - mx * my;
+          const S mx = f[x], my = fy[x];
+          const S sxx = f[W + x] - mx * mx, syy = fy[fyy + x] - my * my, sxy = f[2 * W + x] - mx * my;
           const S A = S(2) * mx * my + C1, B = S(2) * sxy + C2;
           const S Cm = mx * mx + my * my + C1, D = sxx + syy + C2;
           const S den = Cm * D;
@@ -290,6 +355,7 @@ bool scale_rows_all_finite(const std::vector<at::Tensor>& tensors, const at::Ten
 
 TORCH_LIBRARY(nimbus_train_step, m) {
   m.def("photometric_loss", &nimbus_train_step::photometric_loss);
+  m.def("target_moments", &nimbus_train_step::target_moments);
   m.def("all_finite", &nimbus_train_step::all_finite);
   m.def("scale_rows_all_finite", &nimbus_train_step::scale_rows_all_finite);
 }

@@ -46,10 +46,12 @@ def dcp_loss(clean: Tensor, patch: int, temperature: float, form: str = "l1", ma
     return dark * dark if form == "squared" else dark
 
 
-def stage_loss(pred: Tensor, target: Tensor, lambda_r: float, mask: Tensor | None = None) -> Tensor:
+def stage_loss(pred: Tensor, target: Tensor, lambda_r: float, mask: Tensor | None = None,
+               target_moments: Tensor | None = None) -> Tensor:
     """(1 - lambda_r) ||I_in - pred||_1 + lambda_r (1 - SSIM(I_in, pred)) (paper Eqs. 11 and 14).
 
     ``mask`` (bool ``[H, W]``): the view's validity mask; both terms are means over its valid
-    pixels (:func:`nimbus.losses.photometric_loss`).
+    pixels (:func:`nimbus.losses.photometric_loss`).  ``target_moments``: the target's
+    :func:`nimbus.losses.loss_target_moments`, for a target used at many steps (the same loss).
     """
-    return photometric_loss(pred, target, lambda_r, mask)
+    return photometric_loss(pred, target, lambda_r, mask, target_moments)

@@ -59,6 +59,7 @@ from nimbus.methods.nimbusgs.degradation import (DEHAZE_MIN_TRANSMISSION, INIT_T
                                          ParticulateLayer, compose, consistency_check, estimate_march_time,
                                          valid_image, view_excesses)
 from nimbus.methods.nimbusgs.ggs import GGSFactors, ggs_weights, scale_gradients
+from nimbus.losses import loss_target_moments
 from nimbus.methods.nimbusgs.losses import dcp_loss, stage_loss
 from nimbus.methods.nimbusgs.particulate import ViewGeometry, is_refresh_step
 from nimbus.restore import pixel_sizes
@@ -69,6 +70,10 @@ from nimbus.render.gaussians import Gaussians
 from nimbus.render.rasterize import rasterize
 from nimbus.render.sh import rgb_to_sh, sh_to_rgb
 from nimbus.utils.memory import SizeCost
+
+#: Bytes of the prior's loss moments kept across steps (two float planes per pixel and channel per view; the small
+#: scenes' 35 views take 36 MB, a 252-view capture at 199x133 64 MB); views past it are filtered at every step.
+PRIOR_MOMENTS_BUDGET = 256 << 20
 
 #: Smallest side of a written extinction slice (pixels); small grids are upsampled (nearest).
 _SLICE_MIN_SIDE = 128
@@ -96,6 +101,9 @@ class NimbusGS(GaussianSplatting):
         self._surfaces: list[ViewGeometry] | None = None
         #: This step's gradients that GGS scaled, and whether they were finite (its pass checks them).
         self._checked_grads: tuple[list[Tensor], bool] | None = None
+        #: This step's GGS weights and the rasterizer's :class:`~nimbus.kernels.raster.RowScale` they were handed
+        #: to (None where it has none), from :meth:`before_backward` to :meth:`reweight_gradients`.
+        self._ggs_weights: tuple[Tensor, object] | None = None
         self.medium: Medium | None = None
         self.particulate: ParticulateLayer | None = None
         self.ggs = GGSFactors(c.ggs_depth, c.ggs_radius, c.ggs_error, c.ggs_r0, tuple(c.ggs_clip))
@@ -115,6 +123,8 @@ class NimbusGS(GaussianSplatting):
         self.time_saved: dict[str, float] = {}
         #: Per training view, its single-image dehaze (``lambda_dehaze``), or None.
         self.prior_clean: list[Tensor] | None = None
+        #: Per training view, the loss's moments of its prior, once used (:meth:`_prior_moments`).
+        self._prior_cache: dict[int, Tensor | None] = {}
         if self.use_csm and c.lambda_dehaze > 0:
             self.prior_clean = self._dehazed_views()
         if self.use_csm:
@@ -237,6 +247,17 @@ class NimbusGS(GaussianSplatting):
         self.timing["prior_s"] += time.perf_counter() - t0
         return out
 
+    def _prior_moments(self, vi: int) -> Tensor | None:
+        """The SSIM moments of view ``vi``'s prior, which is the same target at every step (the loss's
+        ``gt_moments``): kept per view up to :data:`PRIOR_MOMENTS_BUDGET` bytes in all, None past it or where
+        the loss's kernel does not run (the loss is the same either way, bit for bit)."""
+        if vi not in self._prior_cache:
+            used = sum(t.nbytes for t in self._prior_cache.values() if t is not None)
+            target = self.prior_clean[vi]
+            fits = used + 2 * target.numel() * target.element_size() <= PRIOR_MOMENTS_BUDGET
+            self._prior_cache[vi] = loss_target_moments(target) if fits else None
+        return self._prior_cache[vi]
+
     def _rays_for(self, vi: int) -> ViewRays:
         if vi not in self._rays:
             self._rays[vi] = camera_rays(self.train_views[vi].camera, self.device)
@@ -313,12 +334,13 @@ class NimbusGS(GaussianSplatting):
                 prior_weight = prior_weight if bool(mask.any()) else 0.0
             if prior_weight > 0:
                 loss = loss + prior_weight * stage_loss(parts["clean"], self.prior_clean[view_index], c.lambda_dssim,
-                                                        mask)
+                                                        mask, None if mask is not None else self._prior_moments(view_index))
         return loss, pred.detach()
 
-    def reweight_gradients(self, step: int, view_index: int, render: dict, pred: Tensor, gt: Tensor,
-                           info: dict) -> None:
-        """GGS (stage 2): rescale each Gaussian's gradients, and hand the weights to the strategy."""
+    def before_backward(self, step: int, view_index: int, render: dict, pred: Tensor, gt: Tensor) -> None:
+        """GGS (stage 2): the per-Gaussian weights, from this step's forward alone; handed to the rasterizer's
+        backward to apply where it can (:meth:`reweight_gradients` scales the gradients itself otherwise)."""
+        self._ggs_weights = None
         if self.stage != 2 or not self.use_ggs:
             return
         t0 = time.perf_counter()
@@ -328,9 +350,29 @@ class NimbusGS(GaussianSplatting):
             error = error * self.train_masks[view_index]
         means2d = meta["means2d"].detach().reshape(-1, 2)
         w, _ = ggs_weights(meta["depths"], meta["radii"], means2d, error, meta["visible"], self.ggs)
-        self._checked_grads = scale_gradients(self.params.tensors, w)
-        info["grad2d_weight"] = w
+        holder = meta.get("row_scale")
+        # Folding the weights into the projection's backward gives the bits of scaling afterwards only when that
+        # backward is the Gaussians' sole gradient (not so in the Gaussian-driven extinction ablation, which
+        # rasterizes them a second time) and the weights are finite.
+        if (holder is not None and not (self.use_csm and self.medium.field is None)
+                and w.dtype == meta["depths"].dtype and train_step.all_finite([w])):
+            holder.weights = w
+        self._ggs_weights = (w, holder)
         self.timing["ggs_s"] += time.perf_counter() - t0
+
+    def reweight_gradients(self, step: int, view_index: int, render: dict, pred: Tensor, gt: Tensor,
+                           info: dict) -> None:
+        """GGS (stage 2): each Gaussian's gradients scaled by its weight (already, by the rasterizer's backward,
+        when it took them), and the weights handed to the strategy."""
+        if self._ggs_weights is None:
+            return
+        (w, holder), self._ggs_weights = self._ggs_weights, None
+        self._checked_grads = None  # folded: the guard checks every gradient itself
+        if holder is None or holder.weights is None or holder.applied != 1:
+            t0 = time.perf_counter()
+            self._checked_grads = scale_gradients(self.params.tensors, w)
+            self.timing["ggs_s"] += time.perf_counter() - t0
+        info["grad2d_weight"] = w
 
     def _grads_finite(self) -> bool:
         """The gradient guard, less the gradients that GGS's scaling pass checked this step."""

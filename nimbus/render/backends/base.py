@@ -44,7 +44,7 @@ class Backend:
 
 
 def make_meta(means2d: Tensor, radii: Tensor, depths: Tensor, num_intersections: int, backend: str, width: int,
-              height: int, visible: Tensor | None = None) -> dict:
+              height: int, visible: Tensor | None = None, row_scale=None) -> dict:
     """The ``meta`` dict of :func:`nimbus.render.rasterize`, the same keys and shapes for every backend.
 
     Parameters
@@ -64,7 +64,10 @@ def make_meta(means2d: Tensor, radii: Tensor, depths: Tensor, num_intersections:
         Image size.
     visible : Tensor [N] bool, optional
         Which Gaussians were drawn; default ``radii > 0``.
+    row_scale : nimbus.kernels.raster.RowScale, optional
+        Where the backend can fold per-Gaussian factors into the parameters' gradients (set its
+        ``weights`` before ``backward``); None where it cannot.
     """
     return {"means2d": means2d, "radii": radii.to(torch.int32), "depths": depths,
             "visible": radii > 0 if visible is None else visible, "num_intersections": int(num_intersections),
-            "backend": backend, "width": width, "height": height}
+            "backend": backend, "width": width, "height": height, "row_scale": row_scale}

@@ -5,7 +5,8 @@ counting sort, and the C++ compositor, all over the N Gaussians (culled ones hav
 0 and zero opacity and are in no tile list), so a render is a handful of ops instead of
 ~100 small torch ops and their autograd records, with no gathers or scatters.  A camera
 whose ``viewmat``/``K`` need gradients takes the torch projection with the C++
-compositor.  The only backend that collects ``absgrad`` (with a fixed camera).
+compositor.  The only backend that collects ``absgrad`` (with a fixed camera), and the only one
+whose ``meta["row_scale"]`` folds per-Gaussian gradient factors into its backward (with a fixed camera).
 """
 
 from __future__ import annotations
@@ -44,15 +45,17 @@ def rasterize(gaussians: Gaussians, viewmat, K, width, height, sh_degree, backgr
         s, args = torch_backend.project_and_bin(gaussians, viewmat, K, width, height, sh_degree, config)
         rgb, depth, alpha = raster.composite(*args, background)
         return rgb, depth, alpha, make_meta(s.means2d, s.radii, s.depths, args[5].numel(), "cpp", width, height)
+    row_scale = raster.RowScale()
     means2d, conics, colors, opacities, depths, radii = raster.project_and_shade(
         gaussians.means, gaussians.quats, gaussians.log_scales, gaussians.opacity_logits, gaussians.sh_dc,
-        gaussians.sh_rest, viewmat, K, width, height, sh_degree, config.projection)
+        gaussians.sh_rest, viewmat, K, width, height, sh_degree, config.projection, row_scale)
     if means2d.requires_grad:
         means2d.retain_grad()
     isect_ids, tile_offsets = raster.bin_gaussians(means2d, radii, depths, width, height, config.tile_size)
     rgb, depth, alpha = raster.composite(means2d, conics, colors, opacities, depths, isect_ids, tile_offsets,
                                          width, height, config.tile_size, background, absgrad=absgrad)
-    return rgb, depth, alpha, make_meta(means2d, radii, depths, isect_ids.numel(), "cpp", width, height)
+    return rgb, depth, alpha, make_meta(means2d, radii, depths, isect_ids.numel(), "cpp", width, height,
+                                        row_scale=row_scale)
 
 
 def _available(device) -> bool:
