@@ -333,8 +333,9 @@ class NimbusGS(GaussianSplatting):
                 mask = surface if mask is None else surface & mask
                 prior_weight = prior_weight if bool(mask.any()) else 0.0
             if prior_weight > 0:
+                kept = None if mask is not None else self._prior_moments(view_index)
                 loss = loss + prior_weight * stage_loss(parts["clean"], self.prior_clean[view_index], c.lambda_dssim,
-                                                        mask, None if mask is not None else self._prior_moments(view_index))
+                                                        mask, kept)
         return loss, pred.detach()
 
     def before_backward(self, step: int, view_index: int, render: dict, pred: Tensor, gt: Tensor) -> None:
