@@ -10,8 +10,8 @@ loss) derive from it and override only the points where their model enters the s
 each a plain method with one job: :meth:`~GaussianSplatting.loss` (what the render is
 compared with), :meth:`~GaussianSplatting.before_backward` and
 :meth:`~GaussianSplatting.reweight_gradients` (per-Gaussian gradient weights, handed to the
-rasterizer's backward or applied after it, and to the strategy in ``info``), :meth:`~GaussianSplatting.param_groups` /
-:meth:`~GaussianSplatting.optimizer_step` (extra optimised tensors) and
+rasterizer's backward or applied after it, and to the strategy in ``info``),
+:meth:`~GaussianSplatting.param_groups` / :meth:`~GaussianSplatting.optimizer_step` (extra optimised tensors) and
 :meth:`~GaussianSplatting.after_step` (their own schedule).  The step itself, its guards
 and its order stay here, in one place, rather than being copied.
 """

@@ -50,6 +50,7 @@ from torch import Tensor
 from nimbus.data import Camera
 from nimbus.data.images import write_image
 from nimbus.kernels import train_step
+from nimbus.losses import loss_target_moments
 from nimbus.methods.gs3d import GaussianSplatting
 from nimbus.methods.nimbusgs.airlight import network_airlight_bytes, view_descriptor
 from nimbus.methods.nimbusgs.auto import (ParticleEvidence, haze_evidence, particle_evidence, particle_thresholds,
@@ -59,7 +60,6 @@ from nimbus.methods.nimbusgs.degradation import (DEHAZE_MIN_TRANSMISSION, INIT_T
                                          ParticulateLayer, compose, consistency_check, estimate_march_time,
                                          valid_image, view_excesses)
 from nimbus.methods.nimbusgs.ggs import GGSFactors, ggs_weights, scale_gradients
-from nimbus.losses import loss_target_moments
 from nimbus.methods.nimbusgs.losses import dcp_loss, stage_loss
 from nimbus.methods.nimbusgs.particulate import ViewGeometry, is_refresh_step
 from nimbus.restore import pixel_sizes
@@ -369,7 +369,7 @@ class NimbusGS(GaussianSplatting):
             return
         (w, holder), self._ggs_weights = self._ggs_weights, None
         self._checked_grads = None  # folded: the guard checks every gradient itself
-        if holder is None or holder.weights is None or holder.applied != 1:
+        if holder is None or holder.weights is None or holder.applied == 0:
             t0 = time.perf_counter()
             self._checked_grads = scale_gradients(self.params.tensors, w)
             self.timing["ggs_s"] += time.perf_counter() - t0
