@@ -24,7 +24,8 @@ backward: rest        the rest of ``backward()`` (loss, and NimbusGS's medium)
 loss                  ``method.loss`` (L1 + SSIM; NimbusGS: also L_DCP, L_TV, compose)
 NimbusGS march        ``march_interval`` + ``march`` (forward)
 NimbusGS airlight     the airlight network (forward)
-GGS                   ``reweight_gradients``
+GGS                   ``before_backward`` (the weights) + ``reweight_gradients`` (scaling, where
+                      the rasterizer's backward did not fold the weights in)
 optimiser step        ``optimizer_step`` (NimbusGS: with the medium's Adam)
 densification         ``strategy.step_post_backward`` (statistics every step, densify and
                       prune at its steps), amortised
@@ -195,8 +196,8 @@ def instrumented(method, probe: Probe):
 
             _patch(stack, gsplat, "rasterization", probe.wrap_composite)
         _patch(stack, torch.Tensor, "backward", probe.wrap_backward)
-        for name, key in (("loss", "loss"), ("reweight_gradients", "ggs"), ("optimizer_step", "optimizer"),
-                          ("after_step", "refresh")):
+        for name, key in (("loss", "loss"), ("before_backward", "ggs"), ("reweight_gradients", "ggs"),
+                          ("optimizer_step", "optimizer"), ("after_step", "refresh")):
             _patch(stack, method, name, lambda f, key=key: probe.wrap(key, f))
         _patch(stack, method.strategy, "step_post_backward", lambda f: probe.wrap("densify", f))
         medium = getattr(method, "medium", None)
