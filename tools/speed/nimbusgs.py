@@ -38,9 +38,9 @@ import time
 import torch
 
 from nimbus.methods.gs3d import GaussianSplatting
+from nimbus.methods.nimbusgs.ggs import scale_gradients
 from nimbus.methods.nimbusgs.particulate import _excess_torch, is_refresh_step
 from nimbus.methods.nimbusgs.scattering import march, march_interval, march_reference
-from nimbus.render.rasterize import means2d_grad
 
 
 def _time(fn, repeats: int, warmup: int = 1) -> tuple[float, float]:
@@ -165,13 +165,13 @@ def component_rows(tr, repeats: int, reference: bool) -> list[tuple[str, float, 
     r2 = tr.render(view.camera, c.sh_degree)
     loss, pred = tr.loss(it2, vi, r2, gt)
     loss.backward()
-    meta = r2["meta"]
-    info = {"means2d_grad": means2d_grad(meta), "radii": meta["radii"], "visible": meta["visible"],
-            "width": view.camera.width, "height": view.camera.height}
     rows.append(("gradient guard alone (every gradient)", *_time(lambda: GaussianSplatting._grads_finite(tr), repeats)))
-    rows.append(("GGS (reweight_gradients, with the guard of what it scales)",
-                 *_time(lambda: tr.reweight_gradients(it2, vi, r2, pred, gt, info), repeats)))
-    tr._checked_grads = None
+    rows.append(("GGS weights (before_backward)", *_time(lambda: tr.before_backward(it2, vi, r2, pred, gt), repeats)))
+    weights = tr._ggs_weights[0]
+    tr._ggs_weights = None
+    # Where the rasterizer's backward does not fold the weights in (other backends), GGS scales afterwards.
+    rows.append(("GGS scaling after backward, with the guard of what it scales (no fold)",
+                 *_time(lambda: scale_gradients(tr.params.tensors, weights), repeats)))
 
     def opt_step():
         for group in tr.param_groups():
