@@ -90,6 +90,9 @@ def test_small_hazy_tables_regenerate(tmp_path, capsys):
     ("small_paper_R", "nimbus-paper,nimbus-paper[residual_tophat=0.03],3dgs"),  # and under R
     ("small_paper_more", "nimbus-paper,nimbus-paper[lambda_dehaze=1],nimbus-paper[components=auto,consistency_neighbours=4,"
                          "residual_outlier_sigmas=3,residual_tophat=0.03],3dgs,nimbus,restore-3dgs"),  # the other five settings
+    ("small_paper_tabletop", "nimbus-paper,nimbus-paper[lambda_dehaze=1],nimbus-paper[components=auto,"
+                             "consistency_neighbours=4,residual_outlier_sigmas=3,residual_tophat=0.03],3dgs,nimbus,"
+                             "restore-3dgs"),  # the same on the third scene
     ("small_physical", "nimbus,restore-3dgs,3dgs"),  # one-medium (physical) haze, garden and street, H and H+R+S
 ])
 def test_issue34_small_tables_regenerate(folder, methods, tmp_path, capsys):
