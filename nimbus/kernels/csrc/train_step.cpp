@@ -76,6 +76,23 @@ inline void filter_column(const S* plane, S* dst, int64_t y, int64_t H, int64_t 
   }
 }
 
+// The SSIM window's 1-D taps: an odd-length contiguous float64 vector.
+void check_taps(const at::Tensor& taps) {
+  TORCH_CHECK(taps.scalar_type() == at::kDouble && taps.dim() == 1 && taps.size(0) % 2 == 1 &&
+                  taps.is_contiguous(),
+              "taps must be an odd-length contiguous float64 [K] tensor");
+}
+
+// Whether a validity mask is given (non-empty); one that is must be a contiguous CPU [H, W] tensor of the
+// images' dtype (`of` names the image in the message).
+bool check_mask(const at::Tensor& mask, int64_t H, int64_t W, at::ScalarType dtype, const char* of) {
+  const bool masked = mask.numel() > 0;
+  TORCH_CHECK(!masked || (mask.sizes() == at::IntArrayRef({H, W}) && mask.scalar_type() == dtype &&
+                          mask.is_contiguous() && mask.device().is_cpu()),
+              "mask must be empty or a contiguous CPU [H, W] tensor of ", of, "'s dtype");
+  return masked;
+}
+
 // The filtered moments of the target alone, F(y) and F(y^2), [2][C][H][W] in gt's dtype (y masked as in
 // photometric_loss): the same filters and order photometric_loss applies to them, so passing them back
 // as `gt_moments` gives the same bits while it filters only the three moments that depend on pred.
@@ -83,15 +100,10 @@ at::Tensor target_moments(const at::Tensor& gt, const at::Tensor& mask, const at
   TORCH_CHECK(gt.dim() == 3 && gt.device().is_cpu() && gt.is_contiguous() &&
                   (gt.scalar_type() == at::kFloat || gt.scalar_type() == at::kDouble),
               "target_moments: gt must be a contiguous CPU float [H, W, C] tensor");
-  TORCH_CHECK(taps.scalar_type() == at::kDouble && taps.dim() == 1 && taps.size(0) % 2 == 1 &&
-                  taps.is_contiguous(),
-              "taps must be an odd-length contiguous float64 [K] tensor");
+  check_taps(taps);
   const int64_t H = gt.size(0), W = gt.size(1), C = gt.size(2), HW = H * W;
   TORCH_CHECK(H > 0 && W > 0 && C > 0, "target_moments: empty image");
-  const bool masked = mask.numel() > 0;
-  TORCH_CHECK(!masked || (mask.sizes() == at::IntArrayRef({H, W}) && mask.scalar_type() == gt.scalar_type() &&
-                          mask.is_contiguous() && mask.device().is_cpu()),
-              "mask must be empty or a contiguous CPU [H, W] tensor of gt's dtype");
+  const bool masked = check_mask(mask, H, W, gt.scalar_type(), "gt");
   at::Tensor out = at::empty({2, C, H, W}, gt.options());
   AT_DISPATCH_FLOATING_TYPES(gt.scalar_type(), "target_moments", [&] {
     using S = scalar_t;
@@ -138,15 +150,10 @@ std::tuple<at::Tensor, at::Tensor> photometric_loss(const at::Tensor& pred, cons
   TORCH_CHECK(pred.scalar_type() == gt.scalar_type(), "pred and gt must share one dtype");
   TORCH_CHECK(pred.device().is_cpu() && gt.device().is_cpu(), "photometric_loss: CPU tensors only");
   TORCH_CHECK(pred.is_contiguous() && gt.is_contiguous(), "photometric_loss: inputs must be contiguous");
-  TORCH_CHECK(taps.scalar_type() == at::kDouble && taps.dim() == 1 && taps.size(0) % 2 == 1 &&
-                  taps.is_contiguous(),
-              "taps must be an odd-length contiguous float64 [K] tensor");
+  check_taps(taps);
   const int64_t H = pred.size(0), W = pred.size(1), C = pred.size(2), HW = H * W;
   TORCH_CHECK(H > 0 && W > 0 && C > 0, "photometric_loss: empty image");
-  const bool masked = mask.numel() > 0;
-  TORCH_CHECK(!masked || (mask.sizes() == at::IntArrayRef({H, W}) && mask.scalar_type() == pred.scalar_type() &&
-                          mask.is_contiguous() && mask.device().is_cpu()),
-              "mask must be empty or a contiguous CPU [H, W] tensor of pred's dtype");
+  const bool masked = check_mask(mask, H, W, pred.scalar_type(), "pred");
   const bool cached = gt_moments.numel() > 0;
   TORCH_CHECK(!cached || (gt_moments.sizes() == at::IntArrayRef({2, C, H, W}) &&
                           gt_moments.scalar_type() == pred.scalar_type() && gt_moments.is_contiguous() &&
