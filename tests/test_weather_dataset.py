@@ -91,6 +91,15 @@ def test_same_seed_same_bytes_and_layers_are_deterministic_zips(tmp_path, garden
     assert fa.keys() == fb.keys() and all(fa[k] == fb[k] for k in fa)
     degrade_scene(garden, c, parse_weather("R"), protocol_config(seed=6), progress=False)
     assert files(c)["R/images/001.png"] != fa["R/images/001.png"]
+    # A setting's folder, manifest included, does not depend on the other settings of the call: S made alone
+    # records no depth source or haze model although "all" built both for its hazy settings.
+    d = tmp_path / "d"
+    degrade_scene(garden, d, parse_weather("S"), protocol_config(seed=5), progress=False)
+    fd = files(d)
+    assert {k for k in fd if k.startswith("S/")} == {k for k in fa if k.startswith("S/")}
+    assert all(fd[k] == fa[k] for k in fd if k.startswith("S/"))
+    scene_keys = json.loads(fa["S/manifest.json"])["scene"].keys()
+    assert "haze" not in scene_keys and "haze" in json.loads(fa["H+S/manifest.json"])["scene"]
     # Archives carry fixed timestamps, so their bytes depend only on the arrays.
     arrays = {"t": np.arange(6, dtype=np.float32).reshape(2, 3)}
     assert encode_layers(arrays) == encode_layers(dict(arrays))

@@ -493,7 +493,7 @@ def _recolour_points3d_txt(data: bytes, points: np.ndarray, colours: np.ndarray)
 def _manifest(scene: Scene, setting: WeatherSetting, config: SynthConfig, synth: Synthesizer, views: list,
               summary: SettingSummary, fmt: str, source: str | None, point_colours: DegradedPointColours,
               consistency: dict | None = None) -> dict:
-    described = synth.describe()
+    described = synth.describe(setting)
     if consistency is not None and "depth" in described:
         described["depth"]["consistency"] = consistency
     return {

@@ -208,19 +208,27 @@ class Synthesizer:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def describe(self) -> dict:
-        """Scene-level values for the manifest."""
+    def uses_depth_scale(self, setting: WeatherSetting) -> bool:
+        """Whether ``setting``'s layers depend on :attr:`depth_scale`: one-medium (physical) haze, and
+        depth-aware rain or snow."""
+        return ((setting.haze and self.config.haze.physical)
+                or (self.config.depth_aware and (setting.rain or setting.snow)))
+
+    def describe(self, setting: WeatherSetting | None = None) -> dict:
+        """Scene-level values for the manifest: of ``setting`` only what it used (its depth source,
+        depth scale and haze model), so a setting's manifest does not depend on which other settings
+        were synthesised in the same call; without ``setting``, everything built so far."""
         d = {
             "seed": self.seed,
             "up": self.up.tolist(),
             "wind": {"tilt_deg": self.wind_tilt, "azimuth_deg": self.wind_azimuth,
                      "fall_direction": self.fall_dir.tolist()},
         }
-        if self._depth_source is not None:
+        if self._depth_source is not None and (setting is None or self.needs_depth(setting)):
             d["depth"] = self._depth_source.describe()
-        if self._depth_scale is not None:
+        if self._depth_scale is not None and (setting is None or self.uses_depth_scale(setting)):
             d["depth_scale"] = self._depth_scale
-        if self._haze is not None:
+        if self._haze is not None and (setting is None or setting.haze):
             d["haze"] = self._haze.describe()
         return d
 
