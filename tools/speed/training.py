@@ -342,7 +342,8 @@ def main(argv=None) -> int:
     specs = ([f"{args.scene}:{s}" for s in args.sizes] if args.scene.startswith(BUILTIN_PREFIX)
              and args.scene.count(":") == 1 else [args.scene])
     print(f"training iteration, preset {args.preset}, medians after {args.warmup} warm-up steps; "
-          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}; load average {_load()}\n", flush=True)
+          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}, "
+          f"GOMP_SPINCOUNT={os.environ.get('GOMP_SPINCOUNT', 'unset')}; load average {_load()}\n", flush=True)
     results: dict[tuple[str, int], dict] = {}
     for spec in specs:
         scene = load_scene_arg(spec)
