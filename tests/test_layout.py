@@ -183,13 +183,20 @@ def test_importing_the_library_changes_no_environment_variable_and_the_tools_set
 
 
 def test_the_tools_spin_briefly_only_on_an_idle_machine_and_never_over_the_users_choice():
-    from nimbus.cli import IDLE_LOAD, SPIN_COUNT, openmp_environment
+    from nimbus.cli import IDLE_CORES, SPIN_COUNT, openmp_environment, other_processes_busy_cores
 
     passive = {"OMP_WAIT_POLICY": "PASSIVE"}
-    assert openmp_environment({}, 0.0) == {**passive, "GOMP_SPINCOUNT": str(SPIN_COUNT)}
-    assert openmp_environment({}, IDLE_LOAD - 0.01)["GOMP_SPINCOUNT"] == "1000"
-    for busy in (IDLE_LOAD, 1.0, 7.5, None):  # at the threshold, a busy process beside, a loaded server, unknown
-        assert openmp_environment({}, busy) == passive
-    assert openmp_environment({"OMP_WAIT_POLICY": "ACTIVE"}, 0.0) == {}
-    assert openmp_environment({"OMP_WAIT_POLICY": "PASSIVE"}, 0.0) == {}
-    assert openmp_environment({"GOMP_SPINCOUNT": "0"}, 0.0) == passive
+    assert openmp_environment({}, lambda: 0.0) == {**passive, "GOMP_SPINCOUNT": str(SPIN_COUNT)}
+    assert openmp_environment({}, lambda: IDLE_CORES - 0.1)["GOMP_SPINCOUNT"] == "1000"
+    for busy in (IDLE_CORES, 1.0, 7.5, None):  # at the threshold, a busy process beside, a loaded server, unknown
+        assert openmp_environment({}, lambda: busy) == passive
+
+    def unmeasured():
+        raise AssertionError("measured the machine although the user chose")
+
+    assert openmp_environment({"OMP_WAIT_POLICY": "ACTIVE"}, unmeasured) == {}
+    assert openmp_environment({"OMP_WAIT_POLICY": "PASSIVE"}, unmeasured) == {}
+    assert openmp_environment({"GOMP_SPINCOUNT": "0"}, unmeasured) == passive
+    # The measurement itself: a share of the machine's cores, or None where /proc cannot be read.
+    busy = other_processes_busy_cores(0.05)
+    assert busy is None or 0.0 <= busy <= os.cpu_count() + 1
