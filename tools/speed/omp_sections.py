@@ -28,6 +28,8 @@ import tempfile
 from collections import Counter
 from pathlib import Path
 
+from nimbus.errors import NimbusError
+
 #: Environment variable naming the compiled shim in the child run.
 SHIM_ENV = "NIMBUS_OMP_SECTIONS_SHIM"
 
@@ -50,13 +52,16 @@ long omp_sections_total(void) { return atomic_load(&sections); }
 
 
 def build_shim(folder: Path) -> Path:
-    """Compile the counting shim into ``folder``; raises RuntimeError with the compiler's complaint."""
+    """Compile the counting shim into ``folder``; a NimbusError says why it could not be."""
     src, lib = folder / "omp_sections.c", folder / "libomp_sections.so"
     src.write_text(SHIM_SOURCE)
-    done = subprocess.run(["cc", "-O2", "-shared", "-fPIC", str(src), "-o", str(lib), "-ldl"],
-                          capture_output=True, text=True)
+    try:
+        done = subprocess.run(["cc", "-O2", "-shared", "-fPIC", str(src), "-o", str(lib), "-ldl"],
+                              capture_output=True, text=True)
+    except OSError as e:
+        raise NimbusError(f"cannot run the C compiler cc ({e}); install one to count sections") from e
     if done.returncode != 0:
-        raise RuntimeError(f"cannot compile the libgomp shim with cc: {done.stderr.strip()[:300]}")
+        raise NimbusError(f"cannot compile the libgomp shim with cc: {done.stderr.strip()[:300]}")
     return lib
 
 
@@ -89,12 +94,10 @@ def count_sections(shim: ctypes.CDLL, run) -> tuple[int, Counter]:
 
 def method_sections(shim: ctypes.CDLL, method_name: str, scene, preset: str, warmup: int, steps: int) -> dict:
     """Sections per step of ``method_name`` on ``scene``: the total, inside torch operations, and by operation."""
-    from nimbus.methods.registry import get_method
     from nimbus.train.runner import Runner
+    from tools.speed.training import method_config
 
-    config = get_method(method_name).preset(preset)
-    if hasattr(config, "write_decomposition"):
-        config = config.with_changes({"write_decomposition": False})
+    method_name, config = method_config(method_name, preset)
     with tempfile.TemporaryDirectory(prefix="omp_sections_") as out:
         method = Runner(method_name, scene, config, out, seed=0, progress=False, checkpoints=False).method
         last = min(config.iterations, warmup + steps)
@@ -129,11 +132,10 @@ def child_main(args) -> int:
               f"{args.warmup}, {args.threads} threads)")
         for (op, shapes), k in sorted(r["by_op"].items(), key=lambda kv: -kv[1])[:args.top]:
             print(f"  {k:6.1f}  {op} {list(shapes)}")
-    if len(results) > 1:
-        first, *rest = args.methods
-        for name in rest:
-            base = results[first]["per_step"]
-            print(f"{name} / {first}: {results[name]['per_step'] / base:.2f}x the sections" if base else "")
+    first, *rest = args.methods
+    for name in rest:
+        if results[first]["per_step"]:
+            print(f"{name} / {first}: {results[name]['per_step'] / results[first]['per_step']:.2f}x the sections")
     return 0
 
 
@@ -150,14 +152,9 @@ def main(argv=None) -> int:
     if os.environ.get(SHIM_ENV):
         return child_main(args)
     if not sys.platform.startswith("linux"):
-        print("error: the section count needs Linux (LD_PRELOAD over GNU libgomp)", file=sys.stderr)
-        return 2
+        raise NimbusError("the section count needs Linux (LD_PRELOAD over GNU libgomp)")
     with tempfile.TemporaryDirectory(prefix="omp_sections_shim_") as folder:
-        try:
-            lib = build_shim(Path(folder))
-        except (RuntimeError, OSError) as e:
-            print(f"error: {e}", file=sys.stderr)
-            return 2
+        lib = build_shim(Path(folder))
         env = {**os.environ, SHIM_ENV: str(lib),
                "LD_PRELOAD": " ".join(p for p in (str(lib), os.environ.get("LD_PRELOAD", "")) if p)}
         argv = sys.argv[1:] if argv is None else list(argv)
@@ -165,4 +162,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from nimbus.cli_util import run_cli
+
+    raise SystemExit(run_cli(main))

@@ -218,10 +218,11 @@ def main(argv=None) -> int:
 
     import os
 
+    from tools.speed import openmp_wait
+
     print(f"rasterizer forward+backward, float32, 16 px tiles, SH degree 3, median of {args.repeats} runs (ms); "
           f"cpu = process CPU time of one f+b (all threads); peak = added resident memory (MB); "
-          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}, "
-          f"GOMP_SPINCOUNT={os.environ.get('GOMP_SPINCOUNT', 'unset')}, load average "
+          f"{openmp_wait()}, load average "
           f"{' '.join(f'{x:.1f}' for x in os.getloadavg())} (wall times include waiting for a core)")
     print(f"{'size':>8} {'N':>6} {'backend':>9} {'thr':>3} {'visible':>7} {'isect':>8} {'alpha':>5} | "
           f"{'fwd':>8} {'bwd':>8} {'f+b':>8} {'best':>8} {'cpu':>8} {'peak':>7} | {'ref/this':>8}")

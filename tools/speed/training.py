@@ -67,6 +67,7 @@ import torch
 
 from benchmark.tables.model import Block, Column, Row, Table
 from benchmark.tables.writer import to_markdown
+from tools.speed import openmp_wait
 
 #: The parts, in table order: (key, label).
 PARTS = (
@@ -210,18 +211,13 @@ def instrumented(method, probe: Probe):
         yield probe
 
 
-def time_method(method_name: str, scene, preset_name: str, iterations: int | None, warmup: int,
-                threads: int, steps: int | None = None) -> dict:
-    """Train ``method_name`` on ``scene`` and return its per-part figures (see :func:`summarise`).
-
-    ``method_name`` may carry ``--set`` overrides after a colon, ``nimbus:refresh_mode=all,airlight_stride=2``, so
-    two variants of one method are timed side by side in one run.
-    """
+def method_config(method_name: str, preset_name: str, iterations: int | None = None):
+    """``(name, config)`` of a method spec as the speed tools take it: ``NAME`` or ``NAME:KEY=VALUE,...`` (``--set``
+    overrides), the preset's config with them, ``iterations`` rescaling its schedule, and no decomposition images
+    written (they are not what is measured)."""
     from nimbus.config_set import apply_overrides, parse_set_args
     from nimbus.methods.registry import get_method
-    from nimbus.train.runner import Runner
 
-    torch.set_num_threads(threads)
     method_name, _, spec = method_name.partition(":")
     items = [item for item in re.split(r",(?=\w+=)", spec) if item]  # a value may hold commas: ggs_clip=0.5,3
     overrides = parse_set_args(items, flag=f"--methods {method_name}:")
@@ -230,6 +226,20 @@ def time_method(method_name: str, scene, preset_name: str, iterations: int | Non
         config = dataclasses.replace(config, write_decomposition=False)
     if iterations:
         config = config.with_changes({"iterations": iterations})
+    return method_name, config
+
+
+def time_method(method_name: str, scene, preset_name: str, iterations: int | None, warmup: int,
+                threads: int, steps: int | None = None) -> dict:
+    """Train ``method_name`` on ``scene`` and return its per-part figures (see :func:`summarise`).
+
+    ``method_name`` may carry ``--set`` overrides after a colon, ``nimbus:refresh_mode=all,airlight_stride=2``, so
+    two variants of one method are timed side by side in one run.
+    """
+    from nimbus.train.runner import Runner
+
+    torch.set_num_threads(threads)
+    method_name, config = method_config(method_name, preset_name, iterations)
     with tempfile.TemporaryDirectory(prefix="bench_training_") as out:
         method = Runner(method_name, scene, config, out, seed=0, progress=False, checkpoints=False).method
         probe = Probe(method.device)
@@ -342,8 +352,7 @@ def main(argv=None) -> int:
     specs = ([f"{args.scene}:{s}" for s in args.sizes] if args.scene.startswith(BUILTIN_PREFIX)
              and args.scene.count(":") == 1 else [args.scene])
     print(f"training iteration, preset {args.preset}, medians after {args.warmup} warm-up steps; "
-          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}, "
-          f"GOMP_SPINCOUNT={os.environ.get('GOMP_SPINCOUNT', 'unset')}; load average {_load()}\n", flush=True)
+          f"{openmp_wait()}; load average {_load()}\n", flush=True)
     results: dict[tuple[str, int], dict] = {}
     for spec in specs:
         scene = load_scene_arg(spec)
