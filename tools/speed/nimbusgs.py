@@ -12,7 +12,8 @@ settings and every component forced on (``components=csm,plm,ggs``), then times,
 the first training view, each piece of an iteration: the rasterizer (forward +
 backward), the ray march (forward + backward; ``torch`` and the compiled ``cpp``
 backend, and with ``--reference`` the term-by-term :func:`march_reference`), the march
-interval, the airlight network, the photometric loss (L1 + SSIM), L_DCP, L_TV, GGS,
+interval, the airlight network (at the preset's ``airlight_stride``, as training evaluates it, and at
+every pixel), the photometric loss (L1 + SSIM), L_DCP, L_TV, GGS,
 the optimiser step, one whole stage-1 and stage-2 ``train_iteration`` (densification off, so every
 repeat times the same model), and the stage-boundary
 and periodic PLM refresh (every training view rendered and composed, plus the
@@ -135,7 +136,12 @@ def component_rows(tr, repeats: int, reference: bool) -> list[tuple[str, float, 
         print(f"compiled march unavailable: {exc}")
     add("march interval", lambda: march_interval(rays, lo, hi, depth, alpha, c.near_plane, c.surface_alpha_min))
     transmission = torch.rand(ts.shape[0])
-    add("airlight fwd+bwd", lambda: medium.airlight(rays.dirs, transmission, tr.descriptors[vi]).sum().backward())
+    # As training evaluates it: once per airlight_stride x airlight_stride block, then upsampled (fast: 2 x 2).
+    add(f"airlight fwd+bwd (stride {c.airlight_stride})",
+        lambda: medium._airlight(rays, transmission, tr.descriptors[vi], gt).sum().backward())
+    if c.airlight_stride != 1 and c.airlight == "network":
+        add("airlight fwd+bwd (every pixel)",
+            lambda: medium.airlight(rays.dirs, transmission, tr.descriptors[vi], gt.reshape(-1, 3)).sum().backward())
     pred = gt.clone().mul_(0.9).requires_grad_()
     from nimbus.methods.nimbusgs.losses import dcp_loss, stage_loss
 
