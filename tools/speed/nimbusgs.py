@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
 import statistics
 import tempfile
 import time
@@ -42,6 +41,7 @@ from nimbus.methods.gs3d import GaussianSplatting
 from nimbus.methods.nimbusgs.ggs import scale_gradients
 from nimbus.methods.nimbusgs.particulate import _excess_torch, is_refresh_step
 from nimbus.methods.nimbusgs.scattering import march, march_interval, march_reference
+from tools.speed import load_average, openmp_wait
 
 
 def _time(fn, repeats: int, warmup: int = 1) -> tuple[float, float]:
@@ -55,13 +55,6 @@ def _time(fn, repeats: int, warmup: int = 1) -> tuple[float, float]:
         walls.append(time.perf_counter() - w)
         cpus.append(time.process_time() - c)
     return 1e3 * statistics.median(walls), 1e3 * statistics.median(cpus)
-
-
-def _load() -> str:
-    try:
-        return " ".join(f"{x:.2f}" for x in os.getloadavg())
-    except OSError:
-        return "n/a"
 
 
 def build_method(scene_spec: str, preset_name: str, out: str, checkpoint: str | None = None):
@@ -212,13 +205,13 @@ def main(argv=None) -> int:
         c = tr.cfg
         print(f"scene {args.scene}, preset {args.preset}: {len(tr.train_views)} training views {cam.width}x"
               f"{cam.height}, {len(tr.params)} Gaussians, grid {c.grid_resolution}^3, K = {c.ray_samples}, "
-              f"{torch.get_num_threads()} threads; load average {_load()}")
+              f"{torch.get_num_threads()} threads; {openmp_wait()}; load average {load_average()}")
         rows = component_rows(tr, args.repeats, args.reference)
     width = max(len(r[0]) for r in rows)
     print(f"{'component':<{width}}  {'wall ms':>9}  {'cpu ms':>9}")
     for name, wall, cpu in rows:
         print(f"{name:<{width}}  {wall:9.1f}  {cpu:9.1f}")
-    print(f"load average after: {_load()}")
+    print(f"load average after: {load_average()}")
     return 0
 
 

@@ -216,14 +216,11 @@ def main(argv=None) -> int:
     parser.add_argument("--no-reference", action="store_true", help="skip the dense reference at the small size")
     args = parser.parse_args(argv)
 
-    import os
-
-    from tools.speed import openmp_wait
+    from tools.speed import load_average, openmp_wait
 
     print(f"rasterizer forward+backward, float32, 16 px tiles, SH degree 3, median of {args.repeats} runs (ms); "
           f"cpu = process CPU time of one f+b (all threads); peak = added resident memory (MB); "
-          f"{openmp_wait()}, load average "
-          f"{' '.join(f'{x:.1f}' for x in os.getloadavg())} (wall times include waiting for a core)")
+          f"{openmp_wait()}, load average {load_average()} (wall times include waiting for a core)")
     print(f"{'size':>8} {'N':>6} {'backend':>9} {'thr':>3} {'visible':>7} {'isect':>8} {'alpha':>5} | "
           f"{'fwd':>8} {'bwd':>8} {'f+b':>8} {'best':>8} {'cpu':>8} {'peak':>7} | {'ref/this':>8}")
     for size in args.sizes:

@@ -55,7 +55,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
 import re
 import statistics
 import tempfile
@@ -67,7 +66,7 @@ import torch
 
 from benchmark.tables.model import Block, Column, Row, Table
 from benchmark.tables.writer import to_markdown
-from tools.speed import openmp_wait
+from tools.speed import load_average, openmp_wait
 
 #: The parts, in table order: (key, label).
 PARTS = (
@@ -325,13 +324,6 @@ def ratio_lines(results: dict, threads: list[int]) -> list[str]:
     return lines
 
 
-def _load() -> str:
-    try:
-        return " ".join(f"{x:.2f}" for x in os.getloadavg())
-    except OSError:
-        return "n/a"
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", default="builtin:garden", help="builtin:NAME (timed at --sizes) or a scene folder")
@@ -352,7 +344,7 @@ def main(argv=None) -> int:
     specs = ([f"{args.scene}:{s}" for s in args.sizes] if args.scene.startswith(BUILTIN_PREFIX)
              and args.scene.count(":") == 1 else [args.scene])
     print(f"training iteration, preset {args.preset}, medians after {args.warmup} warm-up steps; "
-          f"{openmp_wait()}; load average {_load()}\n", flush=True)
+          f"{openmp_wait()}; load average {load_average()}\n", flush=True)
     results: dict[tuple[str, int], dict] = {}
     for spec in specs:
         scene = load_scene_arg(spec)
@@ -363,7 +355,7 @@ def main(argv=None) -> int:
             first = next(iter(runs.values()))
             print(markdown(f"{spec} ({first['size']}, {len(scene.train_views)} training views, "
                            f"{first['iterations']}-step schedule, {first['steps']} steps timed), {th} thread(s), "
-                           f"load average {_load()}", runs) + "\n", flush=True)
+                           f"load average {load_average()}", runs) + "\n", flush=True)
     print("\n".join(ratio_lines(results, threads)))
     return 0
 
