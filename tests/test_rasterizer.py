@@ -577,6 +577,82 @@ def test_cpp_projection_and_shading_match_torch_autograd_float64(degree):
         torch.testing.assert_close(x, y, atol=1e-10, rtol=1e-9, msg=lambda m, name=name: f"{name}: {m}")
 
 
+def _cpp_projection(raster, gs, degree, weights_of, row_scale=None):
+    """Outputs of the compiled projection and the six parameters' gradients of sum(output * weight)."""
+    viewmat, K, _, _ = rasterize_module.camera_tensors(CAM, gs.means.dtype)
+    params = [gs.means, gs.quats, gs.log_scales, gs.opacity_logits, gs.sh_dc, gs.sh_rest]
+    holder = raster.RowScale()
+    holder.weights = row_scale
+    outs = raster.project_and_shade(*params, viewmat, K, W, H, degree, ProjectionConfig(), holder)
+    loss = sum((x * w).sum() for x, w in zip(outs[:5], weights_of(outs)))
+    return [o.detach() for o in outs], list(torch.autograd.grad(loss, params, allow_unused=True))
+
+
+def _compositor_like_weights(seed, reach_culled=()):
+    """Random output gradients on the drawn Gaussians only (what the compositor sends), plus a depth gradient on
+    the culled Gaussians listed."""
+    def weights_of(outs):
+        g = torch.Generator().manual_seed(seed)
+        drawn = outs[5] > 0
+        ws = []
+        for x in outs[:5]:
+            w = torch.randn(x.shape, generator=g, dtype=x.dtype)
+            ws.append(w * drawn.reshape((-1,) + (1,) * (x.dim() - 1)))
+        for i in reach_culled:
+            ws[4][i] = 1.5
+        return ws
+    return weights_of
+
+
+@pytest.mark.parametrize("isa", ["avx2", "avx512"])
+def test_cpp_projection_clones_agree_bit_for_bit(isa):
+    """The projection runs eight Gaussians at a time on each instruction-set clone; every clone gives the
+    generic clone's bits, forward and backward, with and without row factors, for a count that is not a
+    multiple of eight."""
+    raster = _needs_cpp()
+    if isa not in raster.cpu_isas():
+        pytest.skip(f"this CPU (or build) cannot run the {isa} clone")
+    gs = with_edge_cases(make_gaussians(61, seed=41, dtype=torch.float32)).requires_grad_()
+    n = len(gs)
+    w = torch.rand(n, generator=torch.Generator().manual_seed(4)) + 0.5
+    before = raster.cpu_isa()
+    runs = {}
+    try:
+        for name in ("generic", isa):
+            raster.set_cpu_isa(name)
+            for scale in (None, w):
+                outs, grads = _cpp_projection(raster, gs, 3, _compositor_like_weights(7, [n - 6]), scale)  # n - 6: culled, reached
+                runs[name, scale is None] = [x.numpy().tobytes() for x in outs + grads]
+    finally:
+        raster.set_cpu_isa(before)
+    assert runs["generic", True] == runs[isa, True] and runs["generic", False] == runs[isa, False]
+
+
+def test_cpp_projection_gives_culled_gaussians_without_gradient_exact_zeros():
+    """A culled Gaussian that no gradient reaches gets +0 in every parameter, even one whose maths would give NaN
+    (an overflowing scale); a culled Gaussian that a gradient reaches (here its depth) gets the torch path's."""
+    raster = _needs_cpp()
+    gs = with_edge_cases(make_gaussians(21, seed=42, dtype=torch.float64))
+    gs.log_scales.data[0] = 800.0  # exp overflows: not finite, so culled
+    gs.means.data[0] = torch.tensor([0.0, 0.0, 4.0], dtype=torch.float64)
+    gs.requires_grad_()
+    n = len(gs)
+    reached = n - 6  # far off-screen to the right (with_edge_cases), in the depth range
+    outs, grads = _cpp_projection(raster, gs, 3, _compositor_like_weights(9, [reached]))
+    culled = (outs[5] == 0).nonzero().flatten().tolist()
+    assert 0 in culled and reached in culled and len(culled) >= 4
+    for i in culled:
+        for name, g in zip(("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest"), grads):
+            if i == reached and name in ("means", "quats", "log_scales"):
+                continue
+            assert torch.equal(g[i], torch.zeros_like(g[i])) and not torch.signbit(g[i]).any(), (i, name)
+    assert grads[0][reached].abs().sum() > 0
+    viewmat, K, _, _ = rasterize_module.camera_tensors(CAM, torch.float64)
+    proj = project_gaussians(gs.means, gs.quats, gs.log_scales, viewmat, K, W, H, ProjectionConfig())
+    ref = torch.autograd.grad(proj.depths[reached] * 1.5, [gs.means])[0]
+    torch.testing.assert_close(grads[0][reached], ref[reached], atol=1e-12, rtol=1e-10)
+
+
 def test_cpp_binning_equals_torch_binning():
     raster = _needs_cpp()
     for dtype in (torch.float32, torch.float64):

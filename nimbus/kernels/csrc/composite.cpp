@@ -929,6 +929,10 @@ std::string set_cpu_isa(const std::string& name) {
 }
 
 }  // namespace
+
+// The clone in use, for the other kernels of this library (project.cpp): 0 generic, 1 AVX2, 2 AVX-512.
+int active_isa_index() { return static_cast<int>(active_isa()); }
+
 }  // namespace nimbus_composite
 
 TORCH_LIBRARY(nimbus_composite, m) {

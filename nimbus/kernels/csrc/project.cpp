@@ -30,8 +30,16 @@
 #include <tuple>
 #include <vector>
 
+#include "common.h"
+
+namespace nimbus_composite {
+int active_isa_index();  // composite.cpp: the clone in use
+}  // namespace nimbus_composite
+
 namespace nimbus_project {
 namespace {
+
+using namespace nimbus_simd;
 
 // SH constants of nimbus/render/sh.py.
 constexpr double C0 = 0.28209479177387814;
@@ -85,52 +93,102 @@ Camera make_camera(const at::Tensor& viewmat, const at::Tensor& K, int64_t width
   return c;
 }
 
-// Everything the forward computes for one in-depth Gaussian, kept for the backward.
+// The per-Gaussian maths runs kLanes (8) Gaussians at a time in float64 vectors (GCC
+// vector extensions, common.h), compiled for generic x86-64, AVX2 and AVX-512 like the
+// compositing tiles, and the clone follows the compositor's (NIMBUS_CPU_ISA).  Every
+// lane runs the IEEE operations of the former one-Gaussian-at-a-time code in the same
+// order (no FMA contraction; exp, ceil and sqrt per lane with the same libm and
+// instructions), so the outputs are bitwise those of that code on any clone.  Branches
+// became selects: a lane's result is taken only where the scalar code computed it.
+using VD = Vec<double>;
+using MD = Mask<double>;
+
+// Everything the forward computes for kLanes in-depth Gaussians, kept for the backward.
 struct Geo {
-  double p[3];       // camera-frame centre
-  double qn[4];      // normalised quaternion
-  double qnorm;      // |q| before the clamp
-  double Rq[9];      // rotation of the normalised quaternion
-  double s[3];       // scales
-  double T[6];       // J R, 2 x 3
-  double V[6];       // T Rq diag(s), 2 x 3
-  double cxx, cxy, cyy, det;
-  double u, v;
-  double rx, ry;     // x / z and y / z before the FoV clamp
-  double tx, ty;     // z * clamped ratios
-  bool mx, my;       // whether the clamp passes the gradient (inside or on the limit)
+  VD p[3];       // camera-frame centre
+  VD qn[4];      // normalised quaternion
+  VD qnorm;      // |q| before the clamp
+  VD Rq[9];      // rotation of the normalised quaternion
+  VD s[3];       // scales
+  VD T[6];       // J R, 2 x 3
+  VD V[6];       // T Rq diag(s), 2 x 3
+  VD cxx, cxy, cyy, det;
+  VD u, v;
+  VD rx, ry;     // x / z and y / z before the FoV clamp
+  VD tx, ty;     // z * clamped ratios
+  MD mx, my;     // whether the clamp passes the gradient (inside or on the limit)
 };
 
-template <typename S>
-void geometry(const Camera& c, const S* mean, const S* quat, const S* log_scale, Geo& g) {
-  const double m[3] = {double(mean[0]), double(mean[1]), double(mean[2])};
+NIMBUS_INLINE VD vsqrt(VD x) {
+  VD r;
+  for (int l = 0; l < kLanes; ++l) r[l] = std::sqrt(x[l]);
+  return r;
+}
+
+// The kLanes Gaussians of a block: first index, how many are real (the rest repeat the
+// last one and are never written back), and each lane's index.
+struct Block {
+  int64_t idx[kLanes];
+  int count;
+  Block(int64_t i0, int64_t end) : count(static_cast<int>(std::min<int64_t>(kLanes, end - i0))) {
+    for (int l = 0; l < kLanes; ++l) idx[l] = std::min<int64_t>(i0 + l, end - 1);
+  }
+  // Up to kLanes indices from a list.
+  Block(const int64_t* list, int64_t n) : count(static_cast<int>(std::min<int64_t>(kLanes, n))) {
+    for (int l = 0; l < kLanes; ++l) idx[l] = list[std::min(l, count - 1)];
+  }
+  // exp of column j of a row-major [N, width] array (negated first if asked), as float64 lanes.  Called
+  // before any vector is live: a libm call in the middle of the vector code would spill them all.
+  template <typename S>
+  NIMBUS_INLINE VD exp_col(const S* a, int64_t width, int64_t j, bool negate) const {
+    double r[kLanes];
+    for (int l = 0; l < kLanes; ++l) {
+      const double v = double(a[idx[l] * width + j]);
+      r[l] = std::exp(negate ? -v : v);
+    }
+    return load<VD>(r);
+  }
+  // Column j of a row-major [N, width] array, as float64 lanes.
+  template <typename S>
+  NIMBUS_INLINE VD col(const S* a, int64_t width, int64_t j) const {
+    VD v;
+    for (int l = 0; l < kLanes; ++l) v[l] = double(a[idx[l] * width + j]);
+    return v;
+  }
+};
+
+NIMBUS_INLINE VD depth_of(const Camera& c, const VD m[3]) {
+  return c.R[6] * m[0] + c.R[7] * m[1] + c.R[8] * m[2] + c.t[2];
+}
+
+// scale: exp(log_scale), computed beforehand (Block::exp_col).
+NIMBUS_INLINE void geometry(const Camera& c, const VD m[3], const VD q[4], const VD scale[3], Geo& g) {
   for (int i = 0; i < 3; ++i) g.p[i] = c.R[3 * i] * m[0] + c.R[3 * i + 1] * m[1] + c.R[3 * i + 2] * m[2] + c.t[i];
-  const double x = g.p[0], y = g.p[1], z = g.p[2];
+  const VD x = g.p[0], y = g.p[1], z = g.p[2];
   g.u = c.fx * x / z + c.cx;
   g.v = c.fy * y / z + c.cy;
   g.rx = x / z;
   g.ry = y / z;
-  const double crx = std::min(std::max(g.rx, -c.lim_x_neg), c.lim_x_pos);
-  const double cry = std::min(std::max(g.ry, -c.lim_y_neg), c.lim_y_pos);
-  g.mx = g.rx >= -c.lim_x_neg && g.rx <= c.lim_x_pos;
-  g.my = g.ry >= -c.lim_y_neg && g.ry <= c.lim_y_pos;
+  const VD crx = vmin(vmax(g.rx, splat(-c.lim_x_neg)), splat(c.lim_x_pos));
+  const VD cry = vmin(vmax(g.ry, splat(-c.lim_y_neg)), splat(c.lim_y_pos));
+  g.mx = (g.rx >= -c.lim_x_neg) & (g.rx <= c.lim_x_pos);
+  g.my = (g.ry >= -c.lim_y_neg) & (g.ry <= c.lim_y_pos);
   g.tx = z * crx;
   g.ty = z * cry;
-  const double J00 = c.fx / z, J02 = -c.fx * g.tx / (z * z), J11 = c.fy / z, J12 = -c.fy * g.ty / (z * z);
+  const VD J00 = c.fx / z, J02 = -c.fx * g.tx / (z * z), J11 = c.fy / z, J12 = -c.fy * g.ty / (z * z);
   for (int j = 0; j < 3; ++j) {
     g.T[j] = J00 * c.R[j] + J02 * c.R[6 + j];
     g.T[3 + j] = J11 * c.R[3 + j] + J12 * c.R[6 + j];
   }
-  double q[4] = {double(quat[0]), double(quat[1]), double(quat[2]), double(quat[3])};
-  g.qnorm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
-  const double qd = std::max(g.qnorm, kMinNorm);
+  g.qnorm = vsqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+  const VD qd = vmax(g.qnorm, splat(kMinNorm));
   for (int i = 0; i < 4; ++i) g.qn[i] = q[i] / qd;
-  const double w = g.qn[0], qx = g.qn[1], qy = g.qn[2], qz = g.qn[3];
-  const double R[9] = {1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - w * qz), 2 * (qx * qz + w * qy),
-                       2 * (qx * qy + w * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - w * qx),
-                       2 * (qx * qz - w * qy), 2 * (qy * qz + w * qx), 1 - 2 * (qx * qx + qy * qy)};
-  std::copy(R, R + 9, g.Rq);
-  for (int j = 0; j < 3; ++j) g.s[j] = std::exp(double(log_scale[j]));
+  const VD w = g.qn[0], qx = g.qn[1], qy = g.qn[2], qz = g.qn[3];
+  const VD R[9] = {1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - w * qz), 2 * (qx * qz + w * qy),
+                   2 * (qx * qy + w * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - w * qx),
+                   2 * (qx * qz - w * qy), 2 * (qy * qz + w * qx), 1 - 2 * (qx * qx + qy * qy)};
+  for (int k = 0; k < 9; ++k) g.Rq[k] = R[k];
+  for (int j = 0; j < 3; ++j) g.s[j] = scale[j];
   for (int r = 0; r < 2; ++r) {
     for (int j = 0; j < 3; ++j) {
       g.V[3 * r + j] = (g.T[3 * r] * R[j] + g.T[3 * r + 1] * R[3 + j] + g.T[3 * r + 2] * R[6 + j]) * g.s[j];
@@ -142,34 +200,36 @@ void geometry(const Camera& c, const S* mean, const S* quat, const S* log_scale,
   g.det = g.cxx * g.cyy - g.cxy * g.cxy;
 }
 
-// SH basis (and, when grad is given, its derivatives d B_k / d (x, y, z)) at a unit direction.
-void sh_basis(int64_t degree, const double* d, double* B, double (*dB)[3]) {
-  const double x = d[0], y = d[1], z = d[2];
-  B[0] = C0;
-  if (dB) dB[0][0] = dB[0][1] = dB[0][2] = 0;
+// SH basis (and, when grad is given, its derivatives d B_k / d (x, y, z)) at unit directions.
+NIMBUS_INLINE void sh_basis(int64_t degree, const VD* d, VD* B, VD (*dB)[3]) {
+  const VD x = d[0], y = d[1], z = d[2], zero = splat(0.0);
+  B[0] = splat(C0);
+  if (dB) dB[0][0] = dB[0][1] = dB[0][2] = zero;
   if (degree >= 1) {
     B[1] = -C1 * y;
     B[2] = C1 * z;
     B[3] = -C1 * x;
     if (dB) {
       const double g[3][3] = {{0, -C1, 0}, {0, 0, C1}, {-C1, 0, 0}};
-      for (int k = 0; k < 3; ++k) std::copy(g[k], g[k] + 3, dB[1 + k]);
+      for (int k = 0; k < 3; ++k)
+        for (int j = 0; j < 3; ++j) dB[1 + k][j] = splat(g[k][j]);
     }
   }
   if (degree >= 2) {
-    const double xx = x * x, yy = y * y, zz = z * z;
+    const VD xx = x * x, yy = y * y, zz = z * z;
     B[4] = C2[0] * x * y;
     B[5] = C2[1] * y * z;
     B[6] = C2[2] * (2.0 * zz - xx - yy);
     B[7] = C2[3] * x * z;
     B[8] = C2[4] * (xx - yy);
     if (dB) {
-      const double g[5][3] = {{C2[0] * y, C2[0] * x, 0},
-                              {0, C2[1] * z, C2[1] * y},
-                              {-2 * C2[2] * x, -2 * C2[2] * y, 4 * C2[2] * z},
-                              {C2[3] * z, 0, C2[3] * x},
-                              {2 * C2[4] * x, -2 * C2[4] * y, 0}};
-      for (int k = 0; k < 5; ++k) std::copy(g[k], g[k] + 3, dB[4 + k]);
+      const VD g[5][3] = {{C2[0] * y, C2[0] * x, zero},
+                          {zero, C2[1] * z, C2[1] * y},
+                          {-2 * C2[2] * x, -2 * C2[2] * y, 4 * C2[2] * z},
+                          {C2[3] * z, zero, C2[3] * x},
+                          {2 * C2[4] * x, -2 * C2[4] * y, zero}};
+      for (int k = 0; k < 5; ++k)
+        for (int j = 0; j < 3; ++j) dB[4 + k][j] = g[k][j];
     }
     if (degree >= 3) {
       B[9] = C3[0] * y * (3 * xx - yy);
@@ -180,22 +240,20 @@ void sh_basis(int64_t degree, const double* d, double* B, double (*dB)[3]) {
       B[14] = C3[5] * z * (xx - yy);
       B[15] = C3[6] * x * (xx - 3 * yy);
       if (dB) {
-        const double g[7][3] = {{C3[0] * 6 * x * y, C3[0] * (3 * xx - 3 * yy), 0},
-                                {C3[1] * y * z, C3[1] * x * z, C3[1] * x * y},
-                                {C3[2] * -2 * x * y, C3[2] * (4 * zz - xx - 3 * yy), C3[2] * 8 * y * z},
-                                {C3[3] * -6 * x * z, C3[3] * -6 * y * z, C3[3] * (6 * zz - 3 * xx - 3 * yy)},
-                                {C3[4] * (4 * zz - 3 * xx - yy), C3[4] * -2 * x * y, C3[4] * 8 * x * z},
-                                {C3[5] * 2 * x * z, C3[5] * -2 * y * z, C3[5] * (xx - yy)},
-                                {C3[6] * (3 * xx - 3 * yy), C3[6] * -6 * x * y, 0}};
-        for (int k = 0; k < 7; ++k) std::copy(g[k], g[k] + 3, dB[9 + k]);
+        const VD g[7][3] = {{C3[0] * 6 * x * y, C3[0] * (3 * xx - 3 * yy), zero},
+                            {C3[1] * y * z, C3[1] * x * z, C3[1] * x * y},
+                            {C3[2] * -2 * x * y, C3[2] * (4 * zz - xx - 3 * yy), C3[2] * 8 * y * z},
+                            {C3[3] * -6 * x * z, C3[3] * -6 * y * z, C3[3] * (6 * zz - 3 * xx - 3 * yy)},
+                            {C3[4] * (4 * zz - 3 * xx - yy), C3[4] * -2 * x * y, C3[4] * 8 * x * z},
+                            {C3[5] * 2 * x * z, C3[5] * -2 * y * z, C3[5] * (xx - yy)},
+                            {C3[6] * (3 * xx - 3 * yy), C3[6] * -6 * x * y, zero}};
+        for (int k = 0; k < 7; ++k)
+          for (int j = 0; j < 3; ++j) dB[9 + k][j] = g[k][j];
       }
     }
   }
 }
 
-struct Params {
-  int64_t N, n_rest_stored;
-};
 
 void check_params(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& log_scales,
                   const at::Tensor& logits, const at::Tensor& sh_dc, const at::Tensor& sh_rest, int64_t degree) {
@@ -213,6 +271,339 @@ void check_params(const at::Tensor& means, const at::Tensor& quats, const at::Te
   TORCH_CHECK(sh_rest.dim() == 3 && sh_rest.size(0) == N && sh_rest.size(2) == 3, "sh_rest must be [N, K, 3]");
   TORCH_CHECK(degree >= 0 && degree <= 3 && (degree + 1) * (degree + 1) - 1 <= sh_rest.size(1),
               "sh_degree must be in 0..3 and within the stored bands");
+}
+
+// The inputs both passes read, and the forward's outputs.
+template <typename S>
+struct Params {
+  const S *pm, *pq, *ps, *pl, *pdc, *prest;
+  int64_t KR, nb;
+};
+template <typename S>
+struct ForwardOut {
+  S *om, *oc, *ocol, *oo, *oz;
+  int32_t* orad;
+};
+
+template <typename S>
+NIMBUS_INLINE void forward_range_impl(const Camera& c, const Params<S>& P, const ForwardOut<S>& O, int64_t b,
+                                      int64_t e) {
+  const int64_t degree = c.degree, nb = P.nb, KR = P.KR;
+  const VD zero = splat(0.0);
+  Geo g;
+  VD B[16];
+  for (int64_t i0 = b; i0 < e; i0 += kLanes) {
+    const Block blk(i0, e);
+    VD m[3], q[4], ls[3];
+    for (int j = 0; j < 3; ++j) ls[j] = blk.exp_col(P.ps, 3, j, false);
+    const VD e_logit = blk.exp_col(P.pl, 1, 0, true);
+    for (int j = 0; j < 3; ++j) m[j] = blk.col(P.pm, 3, j);
+    for (int j = 0; j < 4; ++j) q[j] = blk.col(P.pq, 4, j);
+    const VD z0 = depth_of(c, m);
+    const MD in = (z0 > c.near) & (z0 < c.far);
+    geometry(c, m, q, ls, g);
+    const VD mid = 0.5 * (g.cxx + g.cyy);
+    const VD lam = mid + vsqrt(vmax(mid * mid - g.det, zero));
+    const VD r_unrounded = c.radius_sigmas * vsqrt(lam);
+    const VD opac = 1.0 / (1.0 + e_logit);
+    VD dir[3] = {zero, zero, zero};
+    if (degree > 0) {
+      VD d[3], n2 = zero;
+      for (int j = 0; j < 3; ++j) {
+        d[j] = m[j] - c.campos[j];
+        n2 += d[j] * d[j];
+      }
+      const VD nd = vmax(vsqrt(n2), splat(kMinNorm));
+      for (int j = 0; j < 3; ++j) dir[j] = d[j] / nd;
+    }
+    sh_basis(degree, dir, B, nullptr);
+    for (int l = 0; l < blk.count; ++l) {
+      const int64_t i = i0 + l;
+      if (!in[l]) {
+        for (int j = 0; j < 2; ++j) O.om[2 * i + j] = 0;
+        for (int j = 0; j < 3; ++j) O.oc[3 * i + j] = O.ocol[3 * i + j] = 0;
+        O.oo[i] = O.oz[i] = 0;
+        O.orad[i] = 0;
+        continue;
+      }
+      O.om[2 * i] = static_cast<S>(g.u[l]);
+      O.om[2 * i + 1] = static_cast<S>(g.v[l]);
+      O.oz[i] = static_cast<S>(g.p[2][l]);
+      O.oc[3 * i] = static_cast<S>(g.cyy[l] / g.det[l]);
+      O.oc[3 * i + 1] = static_cast<S>(-g.cxy[l] / g.det[l]);
+      O.oc[3 * i + 2] = static_cast<S>(g.cxx[l] / g.det[l]);
+      double r = std::ceil(r_unrounded[l]);
+      const double u = g.u[l], v = g.v[l];
+      const bool on = (u + r > 0) && (u - r < c.width) && (v + r > 0) && (v - r < c.height);
+      if (!on || !std::isfinite(r)) r = 0;
+      r = std::min(r, kMaxRadius);
+      const int32_t rad = static_cast<int32_t>(r);
+      O.orad[i] = rad;
+      if (rad <= 0) {
+        O.oo[i] = 0;
+        for (int ch = 0; ch < 3; ++ch) O.ocol[3 * i + ch] = 0;
+        continue;
+      }
+      O.oo[i] = static_cast<S>(opac[l]);
+      // The colour one Gaussian at a time: its coefficients are one contiguous row.
+      const S* rest = P.prest + i * KR * 3;
+      for (int ch = 0; ch < 3; ++ch) {
+        double acc = B[0][l] * double(P.pdc[3 * i + ch]);
+        for (int64_t k = 1; k < nb; ++k) acc += B[k][l] * double(rest[(k - 1) * 3 + ch]);
+        O.ocol[3 * i + ch] = static_cast<S>(std::max(acc + 0.5, 0.0));
+      }
+    }
+  }
+}
+
+// The gradients w.r.t. the forward's outputs, and the parameters' gradients.
+template <typename S>
+struct BackwardIO {
+  const int32_t* rad;
+  const S *um, *uc, *ucol, *uo, *uz, *sc;  // sc: row_scale, or null
+  S *om, *oq, *os, *ol, *odc, *orest;
+};
+
+NIMBUS_INLINE VD gJ(const VD* gT, const Camera& c, int r, int k) {
+  return gT[3 * r] * c.R[3 * k] + gT[3 * r + 1] * c.R[3 * k + 1] + gT[3 * r + 2] * c.R[3 * k + 2];
+}
+
+template <typename S>
+NIMBUS_INLINE void backward_range_impl(const Camera& c, const Params<S>& P, const BackwardIO<S>& O, int64_t b,
+                                       int64_t e) {
+  const int64_t degree = c.degree, nb = P.nb, KR = P.KR;
+  const VD zero = splat(0.0);
+  Geo g;
+  VD B[16], dB[16][3];
+  // A Gaussian outside the depth range, or culled (radius 0) with no gradient reaching it, gets
+  // zeros without its maths: most of a view's Gaussians are culled.  (Where that maths gives
+  // -0 or, for a degenerate culled Gaussian, NaN times 0, the result is +0 now.)  The rest are
+  // gathered and run kLanes at a time.
+  const auto zero_row = [&](int64_t i) {
+    for (int j = 0; j < 3; ++j) O.om[3 * i + j] = O.os[3 * i + j] = O.odc[3 * i + j] = 0;
+    for (int j = 0; j < 4; ++j) O.oq[4 * i + j] = 0;
+    O.ol[i] = 0;
+    S* rrow = O.orest + i * KR * 3;
+    for (int64_t k = 0; k < KR * 3; ++k) rrow[k] = 0;
+  };
+  std::vector<int64_t> live;
+  live.reserve(static_cast<size_t>(e - b));
+  for (int64_t i = b; i < e; ++i) {
+    const double z0 = c.R[6] * double(P.pm[3 * i]) + c.R[7] * double(P.pm[3 * i + 1]) +
+                      c.R[8] * double(P.pm[3 * i + 2]) + c.t[2];
+    bool reached = O.rad[i] > 0 || O.uo[i] != 0 || O.uz[i] != 0;
+    for (int j = 0; j < 2; ++j) reached = reached || O.um[2 * i + j] != 0;
+    for (int j = 0; j < 3; ++j) reached = reached || O.uc[3 * i + j] != 0 || O.ucol[3 * i + j] != 0;
+    if (z0 > c.near && z0 < c.far && reached) {
+      live.push_back(i);
+    } else {
+      zero_row(i);
+    }
+  }
+  const int64_t n_live = static_cast<int64_t>(live.size());
+  for (int64_t p0 = 0; p0 < n_live; p0 += kLanes) {
+    const Block blk(live.data() + p0, n_live - p0);
+    VD m[3], q[4], ls[3];
+    for (int j = 0; j < 3; ++j) ls[j] = blk.exp_col(P.ps, 3, j, false);
+    const VD e_logit = blk.exp_col(P.pl, 1, 0, true);
+    for (int j = 0; j < 3; ++j) m[j] = blk.col(P.pm, 3, j);
+    for (int j = 0; j < 4; ++j) q[j] = blk.col(P.pq, 4, j);
+    geometry(c, m, q, ls, g);
+    MD vis;
+    for (int l = 0; l < kLanes; ++l) vis[l] = O.rad[blk.idx[l]] > 0 ? -1 : 0;
+    VD wi;  // x * 1 is x: the unscaled bits when there is no factor
+    for (int l = 0; l < kLanes; ++l) wi[l] = O.sc ? double(O.sc[blk.idx[l]]) : 1.0;
+    VD gmean[3] = {zero, zero, zero};
+    // Colour and opacity (their results are kept for visible Gaussians only).
+    const VD o = 1.0 / (1.0 + e_logit);
+    const VD ol = blk.col(O.uo, 1, 0) * o * (1 - o);
+    VD dir[3] = {zero, zero, zero}, d[3] = {zero, zero, zero}, nd = splat(1.0);
+    if (degree > 0) {
+      VD n2 = zero;
+      for (int j = 0; j < 3; ++j) {
+        d[j] = m[j] - c.campos[j];
+        n2 += d[j] * d[j];
+      }
+      nd = vmax(vsqrt(n2), splat(kMinNorm));
+      for (int j = 0; j < 3; ++j) dir[j] = d[j] / nd;
+    }
+    sh_basis(degree, dir, B, dB);
+    // The colour one Gaussian at a time (its coefficients are one contiguous row), written here;
+    // the direction's gradient goes back into lanes.
+    double gdir_l[3][kLanes] = {};
+    for (int l = 0; l < blk.count; ++l) {
+      if (!vis[l]) continue;
+      const int64_t i = blk.idx[l];
+      const S wl = static_cast<S>(wi[l]);
+      const S* rest = P.prest + i * KR * 3;
+      S* orest = O.orest + i * KR * 3;
+      double gd[3] = {0, 0, 0};
+      for (int ch = 0; ch < 3; ++ch) {
+        double acc = B[0][l] * double(P.pdc[3 * i + ch]);
+        for (int64_t k = 1; k < nb; ++k) acc += B[k][l] * double(rest[(k - 1) * 3 + ch]);
+        // clamp_min passes the gradient where the input is >= the bound.
+        const double gc = acc + 0.5 >= 0.0 ? double(O.ucol[3 * i + ch]) : 0.0;
+        O.odc[3 * i + ch] = static_cast<S>(B[0][l] * gc) * wl;
+        for (int64_t k = 1; k < nb; ++k) {
+          orest[(k - 1) * 3 + ch] = static_cast<S>(B[k][l] * gc) * wl;
+          const double cf = double(rest[(k - 1) * 3 + ch]) * gc;
+          for (int j = 0; j < 3; ++j) gd[j] += cf * dB[k][j][l];
+        }
+      }
+      for (int j = 0; j < 3; ++j) gdir_l[j][l] = gd[j];
+    }
+    VD gdir[3];
+    for (int j = 0; j < 3; ++j) gdir[j] = load<VD>(gdir_l[j]);
+    if (degree > 0) {
+      // d (d / |d|) = (I - dir dir^T) / |d|; with the norm clamped the Jacobian is I / 1e-12.
+      const VD dot = dir[0] * gdir[0] + dir[1] * gdir[1] + dir[2] * gdir[2];
+      const MD clamped = vsqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) < kMinNorm;
+      for (int j = 0; j < 3; ++j)
+        gmean[j] += select(vis, select(clamped, gdir[j] / nd, (gdir[j] - dir[j] * dot) / nd), zero);
+    }
+    // Conic = inverse of the dilated covariance.
+    const VD ga = blk.col(O.uc, 3, 0), gb = blk.col(O.uc, 3, 1), gcc = blk.col(O.uc, 3, 2);
+    const VD det = g.det, d2 = det * det, cxx = g.cxx, cxy = g.cxy, cyy = g.cyy;
+    const VD g_cxx = ga * (-cyy * cyy / d2) + gb * (cxy * cyy / d2) + gcc * (1.0 / det - cxx * cyy / d2);
+    const VD g_cyy = ga * (1.0 / det - cyy * cxx / d2) + gb * (cxy * cxx / d2) + gcc * (-cxx * cxx / d2);
+    const VD g_cxy = ga * (2 * cyy * cxy / d2) + gb * (-1.0 / det - 2 * cxy * cxy / d2) + gcc * (2 * cxx * cxy / d2);
+    // cov = V V^T.
+    VD gV[6];
+    for (int j = 0; j < 3; ++j) {
+      gV[j] = 2 * g_cxx * g.V[j] + g_cxy * g.V[3 + j];
+      gV[3 + j] = 2 * g_cyy * g.V[3 + j] + g_cxy * g.V[j];
+    }
+    // V = T Rq diag(s): gT = gV (Rq diag(s))^T, gM = T^T gV with M = Rq diag(s).
+    VD gT[6] = {zero, zero, zero, zero, zero, zero}, gRq[9], glog[3];
+    for (int r = 0; r < 2; ++r)
+      for (int k = 0; k < 3; ++k)
+        for (int j = 0; j < 3; ++j) gT[3 * r + k] += gV[3 * r + j] * g.Rq[3 * k + j] * g.s[j];
+    for (int j = 0; j < 3; ++j) {
+      VD gsj = zero;
+      for (int k = 0; k < 3; ++k) {
+        const VD gM = g.T[k] * gV[j] + g.T[3 + k] * gV[3 + j];
+        gRq[3 * k + j] = gM * g.s[j];
+        gsj += gM * g.Rq[3 * k + j];
+      }
+      glog[j] = gsj * g.s[j];
+    }
+    // T = J R: gJ = gT R^T (entries 00, 02, 11, 12 are the non-constant ones).
+    const VD gJ00 = gJ(gT, c, 0, 0), gJ02 = gJ(gT, c, 0, 2), gJ11 = gJ(gT, c, 1, 1), gJ12 = gJ(gT, c, 1, 2);
+    const VD x = g.p[0], y = g.p[1], z = g.p[2], z2 = z * z, z3 = z2 * z;
+    VD gx = zero, gy = zero, gz = blk.col(O.uz, 1, 0);
+    gz += gJ00 * (-c.fx / z2) + gJ11 * (-c.fy / z2) + gJ02 * (2 * c.fx * g.tx / z3) +
+          gJ12 * (2 * c.fy * g.ty / z3);
+    const VD gtx = gJ02 * (-c.fx / z2), gty = gJ12 * (-c.fy / z2);
+    // tx = z clamp(x / z): d/dx = [unclamped], d/dz = clamp(x / z) - [unclamped] x / z.
+    gx += select(g.mx, gtx, zero);
+    gz += gtx * (g.tx / z - select(g.mx, g.rx, zero));
+    gy += select(g.my, gty, zero);
+    gz += gty * (g.ty / z - select(g.my, g.ry, zero));
+    // Screen centre.
+    const VD gu = blk.col(O.um, 2, 0), gv = blk.col(O.um, 2, 1);
+    gx += gu * c.fx / z;
+    gy += gv * c.fy / z;
+    gz += -gu * c.fx * x / z2 - gv * c.fy * y / z2;
+    for (int j = 0; j < 3; ++j) gmean[j] += c.R[j] * gx + c.R[3 + j] * gy + c.R[6 + j] * gz;
+    // Rotation of the normalised quaternion.
+    const VD w = g.qn[0], qx = g.qn[1], qy = g.qn[2], qz = g.qn[3];
+    const VD* G = gRq;
+    VD gqn[4];
+    gqn[0] = 2 * (-qz * G[1] + qy * G[2] + qz * G[3] - qx * G[5] - qy * G[6] + qx * G[7]);
+    gqn[1] = 2 * (qy * G[1] + qz * G[2] + qy * G[3] - 2 * qx * G[4] - w * G[5] + qz * G[6] + w * G[7] -
+                  2 * qx * G[8]);
+    gqn[2] = 2 * (-2 * qy * G[0] + qx * G[1] + w * G[2] + qx * G[3] + qz * G[5] - w * G[6] + qz * G[7] -
+                  2 * qy * G[8]);
+    gqn[3] = 2 * (-2 * qz * G[0] - w * G[1] + qx * G[2] + w * G[3] - 2 * qz * G[4] + qy * G[5] + qx * G[6] +
+                  qy * G[7]);
+    const MD unit = g.qnorm > kMinNorm;
+    const VD qdot = gqn[0] * g.qn[0] + gqn[1] * g.qn[1] + gqn[2] * g.qn[2] + gqn[3] * g.qn[3];
+    VD gq[4];
+    for (int j = 0; j < 4; ++j) gq[j] = select(unit, (gqn[j] - g.qn[j] * qdot) / g.qnorm, gqn[j] / kMinNorm);
+    // Write the real lanes: colour and opacity for visible Gaussians only.
+    const int64_t n_rest = (nb - 1) * 3;
+    for (int l = 0; l < blk.count; ++l) {
+      const int64_t i = blk.idx[l];
+      S* rrow = O.orest + i * KR * 3;
+      const S wl = static_cast<S>(wi[l]);
+      for (int j = 0; j < 3; ++j) O.om[3 * i + j] = static_cast<S>(gmean[j][l]) * wl;
+      for (int j = 0; j < 3; ++j) O.os[3 * i + j] = static_cast<S>(glog[j][l]) * wl;
+      for (int j = 0; j < 4; ++j) O.oq[4 * i + j] = static_cast<S>(gq[j][l]) * wl;
+      int64_t k0 = 0;
+      if (vis[l]) {  // odc and the first bands of rrow were written with the colour
+        O.ol[i] = static_cast<S>(ol[l]) * wl;
+        k0 = n_rest;
+      } else {
+        O.ol[i] = 0;
+        for (int ch = 0; ch < 3; ++ch) O.odc[3 * i + ch] = 0;
+      }
+      for (int64_t k = k0; k < KR * 3; ++k) rrow[k] = 0;
+    }
+  }
+}
+
+// The clones.  One range of Gaussians per call (a parallel_for chunk), so the switch is paid once per chunk.
+template <typename S>
+void forward_range_generic(const Camera& c, const Params<S>& P, const ForwardOut<S>& O, int64_t b, int64_t e) {
+  forward_range_impl(c, P, O, b, e);
+}
+template <typename S>
+void backward_range_generic(const Camera& c, const Params<S>& P, const BackwardIO<S>& O, int64_t b, int64_t e) {
+  backward_range_impl(c, P, O, b, e);
+}
+#ifdef NIMBUS_HAS_AVX2_CLONE
+template <typename S>
+NIMBUS_TARGET_AVX2 void forward_range_avx2(const Camera& c, const Params<S>& P, const ForwardOut<S>& O, int64_t b,
+                                           int64_t e) {
+  forward_range_impl(c, P, O, b, e);
+}
+template <typename S>
+NIMBUS_TARGET_AVX2 void backward_range_avx2(const Camera& c, const Params<S>& P, const BackwardIO<S>& O, int64_t b,
+                                            int64_t e) {
+  backward_range_impl(c, P, O, b, e);
+}
+#endif
+#ifdef NIMBUS_HAS_AVX512_CLONE
+template <typename S>
+NIMBUS_TARGET_AVX512 void forward_range_avx512(const Camera& c, const Params<S>& P, const ForwardOut<S>& O,
+                                               int64_t b, int64_t e) {
+  forward_range_impl(c, P, O, b, e);
+}
+template <typename S>
+NIMBUS_TARGET_AVX512 void backward_range_avx512(const Camera& c, const Params<S>& P, const BackwardIO<S>& O,
+                                                int64_t b, int64_t e) {
+  backward_range_impl(c, P, O, b, e);
+}
+#endif
+template <typename S>
+void forward_range(const Camera& c, const Params<S>& P, const ForwardOut<S>& O, int64_t b, int64_t e) {
+  switch (nimbus_composite::active_isa_index()) {
+#ifdef NIMBUS_HAS_AVX512_CLONE
+    case 2:
+      return forward_range_avx512(c, P, O, b, e);
+#endif
+#ifdef NIMBUS_HAS_AVX2_CLONE
+    case 1:
+      return forward_range_avx2(c, P, O, b, e);
+#endif
+    default:
+      return forward_range_generic(c, P, O, b, e);
+  }
+}
+template <typename S>
+void backward_range(const Camera& c, const Params<S>& P, const BackwardIO<S>& O, int64_t b, int64_t e) {
+  switch (nimbus_composite::active_isa_index()) {
+#ifdef NIMBUS_HAS_AVX512_CLONE
+    case 2:
+      return backward_range_avx512(c, P, O, b, e);
+#endif
+#ifdef NIMBUS_HAS_AVX2_CLONE
+    case 1:
+      return backward_range_avx2(c, P, O, b, e);
+#endif
+    default:
+      return backward_range_generic(c, P, O, b, e);
+  }
 }
 
 // Returns means2d [N, 2], conics [N, 3], colors [N, 3], opacities [N], depths [N], radii [N] int32.
@@ -235,51 +626,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     S *om = means2d.data_ptr<S>(), *oc = conics.data_ptr<S>(), *ocol = colors.data_ptr<S>();
     S *oo = opac.data_ptr<S>(), *oz = depths.data_ptr<S>();
     int32_t* orad = radii.data_ptr<int32_t>();
-    at::parallel_for(0, N, 8192, [&](int64_t b, int64_t e) {
-      Geo g;
-      double B[16];
-      for (int64_t i = b; i < e; ++i) {
-        for (int j = 0; j < 2; ++j) om[2 * i + j] = 0;
-        for (int j = 0; j < 3; ++j) oc[3 * i + j] = ocol[3 * i + j] = 0;
-        oo[i] = oz[i] = 0;
-        orad[i] = 0;
-        const double z0 = c.R[6] * double(pm[3 * i]) + c.R[7] * double(pm[3 * i + 1]) +
-                          c.R[8] * double(pm[3 * i + 2]) + c.t[2];
-        if (!(z0 > c.near && z0 < c.far)) continue;
-        geometry(c, pm + 3 * i, pq + 4 * i, ps + 3 * i, g);
-        om[2 * i] = static_cast<S>(g.u);
-        om[2 * i + 1] = static_cast<S>(g.v);
-        oz[i] = static_cast<S>(g.p[2]);
-        oc[3 * i] = static_cast<S>(g.cyy / g.det);
-        oc[3 * i + 1] = static_cast<S>(-g.cxy / g.det);
-        oc[3 * i + 2] = static_cast<S>(g.cxx / g.det);
-        const double mid = 0.5 * (g.cxx + g.cyy);
-        const double lam = mid + std::sqrt(std::max(mid * mid - g.det, 0.0));
-        double r = std::ceil(c.radius_sigmas * std::sqrt(lam));
-        const bool on = (g.u + r > 0) && (g.u - r < c.width) && (g.v + r > 0) && (g.v - r < c.height);
-        if (!on || !std::isfinite(r)) r = 0;
-        r = std::min(r, kMaxRadius);
-        orad[i] = static_cast<int32_t>(r);
-        if (orad[i] <= 0) continue;
-        oo[i] = static_cast<S>(1.0 / (1.0 + std::exp(-double(pl[i]))));
-        double dir[3] = {0, 0, 0};
-        if (degree > 0) {
-          double d[3], n2 = 0;
-          for (int j = 0; j < 3; ++j) {
-            d[j] = double(pm[3 * i + j]) - c.campos[j];
-            n2 += d[j] * d[j];
-          }
-          const double nd = std::max(std::sqrt(n2), kMinNorm);
-          for (int j = 0; j < 3; ++j) dir[j] = d[j] / nd;
-        }
-        sh_basis(degree, dir, B, nullptr);
-        for (int ch = 0; ch < 3; ++ch) {
-          double acc = B[0] * double(pdc[3 * i + ch]);
-          for (int64_t k = 1; k < nb; ++k) acc += B[k] * double(prest[(i * KR + k - 1) * 3 + ch]);
-          ocol[3 * i + ch] = static_cast<S>(std::max(acc + 0.5, 0.0));
-        }
-      }
-    });
+    const Params<S> P{pm, pq, ps, pl, pdc, prest, KR, nb};
+    const ForwardOut<S> O{om, oc, ocol, oo, oz, orad};
+    at::parallel_for(0, N, 8192, [&](int64_t b, int64_t e) { forward_range(c, P, O, b, e); });
   });
   return {means2d, conics, colors, opac, depths, radii};
 }
@@ -313,7 +662,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
               "project_backward: row_scale must be empty or a contiguous CPU [N] tensor of the inputs' dtype");
   const auto opts = means.options();
   at::Tensor gm = at::empty({N, 3}, opts), gq = at::empty({N, 4}, opts), gs = at::empty({N, 3}, opts);
-  at::Tensor gl = at::empty({N}, opts), gdc = at::empty({N, 1, 3}, opts), grest = at::zeros({N, KR, 3}, opts);
+  at::Tensor gl = at::empty({N}, opts), gdc = at::empty({N, 1, 3}, opts), grest = at::empty({N, KR, 3}, opts);
   AT_DISPATCH_FLOATING_TYPES(dtype, "project_backward", [&] {
     using S = scalar_t;
     const S *pm = means.data_ptr<S>(), *pq = quats.data_ptr<S>(), *ps = log_scales.data_ptr<S>();
@@ -324,123 +673,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     S *om = gm.data_ptr<S>(), *oq = gq.data_ptr<S>(), *os = gs.data_ptr<S>(), *ol = gl.data_ptr<S>();
     S *odc = gdc.data_ptr<S>(), *orest = grest.data_ptr<S>();
     const S* sc = scaled ? row_scale.data_ptr<S>() : nullptr;
-    at::parallel_for(0, N, 8192, [&](int64_t b, int64_t e) {
-      Geo g;
-      double B[16], dB[16][3];
-      for (int64_t i = b; i < e; ++i) {
-        const S wi = scaled ? sc[i] : S(1);  // x * 1 is x: the unscaled bits when there is no factor
-        for (int j = 0; j < 3; ++j) om[3 * i + j] = os[3 * i + j] = odc[3 * i + j] = 0;
-        for (int j = 0; j < 4; ++j) oq[4 * i + j] = 0;
-        ol[i] = 0;
-        const double z0 = c.R[6] * double(pm[3 * i]) + c.R[7] * double(pm[3 * i + 1]) +
-                          c.R[8] * double(pm[3 * i + 2]) + c.t[2];
-        if (!(z0 > c.near && z0 < c.far)) continue;
-        geometry(c, pm + 3 * i, pq + 4 * i, ps + 3 * i, g);
-        double gmean[3] = {0, 0, 0};
-        // Colour and opacity (visible Gaussians only).
-        if (rad[i] > 0) {
-          const double o = 1.0 / (1.0 + std::exp(-double(pl[i])));
-          ol[i] = static_cast<S>(double(uo[i]) * o * (1 - o)) * wi;
-          double dir[3] = {0, 0, 0}, d[3] = {0, 0, 0}, nd = 1;
-          if (degree > 0) {
-            double n2 = 0;
-            for (int j = 0; j < 3; ++j) {
-              d[j] = double(pm[3 * i + j]) - c.campos[j];
-              n2 += d[j] * d[j];
-            }
-            nd = std::max(std::sqrt(n2), kMinNorm);
-            for (int j = 0; j < 3; ++j) dir[j] = d[j] / nd;
-          }
-          sh_basis(degree, dir, B, dB);
-          double gdir[3] = {0, 0, 0};
-          for (int ch = 0; ch < 3; ++ch) {
-            double acc = B[0] * double(pdc[3 * i + ch]);
-            for (int64_t k = 1; k < nb; ++k) acc += B[k] * double(prest[(i * KR + k - 1) * 3 + ch]);
-            // clamp_min passes the gradient where the input is >= the bound.
-            const double gc = acc + 0.5 >= 0.0 ? double(ucol[3 * i + ch]) : 0.0;
-            odc[3 * i + ch] = static_cast<S>(B[0] * gc) * wi;
-            for (int64_t k = 1; k < nb; ++k) {
-              orest[(i * KR + k - 1) * 3 + ch] = static_cast<S>(B[k] * gc) * wi;
-              const double cf = double(prest[(i * KR + k - 1) * 3 + ch]) * gc;
-              for (int j = 0; j < 3; ++j) gdir[j] += cf * dB[k][j];
-            }
-          }
-          if (degree > 0) {
-            // d (d / |d|) = (I - dir dir^T) / |d|; with the norm clamped the Jacobian is I / 1e-12.
-            const double dot = dir[0] * gdir[0] + dir[1] * gdir[1] + dir[2] * gdir[2];
-            const bool clamped = std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) < kMinNorm;
-            for (int j = 0; j < 3; ++j) gmean[j] += clamped ? gdir[j] / nd : (gdir[j] - dir[j] * dot) / nd;
-          }
-        }
-        // Conic = inverse of the dilated covariance.
-        const double ga = uc[3 * i], gb = uc[3 * i + 1], gcc = uc[3 * i + 2];
-        const double det = g.det, d2 = det * det, cxx = g.cxx, cxy = g.cxy, cyy = g.cyy;
-        const double g_cxx = ga * (-cyy * cyy / d2) + gb * (cxy * cyy / d2) + gcc * (1.0 / det - cxx * cyy / d2);
-        const double g_cyy = ga * (1.0 / det - cyy * cxx / d2) + gb * (cxy * cxx / d2) + gcc * (-cxx * cxx / d2);
-        const double g_cxy = ga * (2 * cyy * cxy / d2) + gb * (-1.0 / det - 2 * cxy * cxy / d2) +
-                             gcc * (2 * cxx * cxy / d2);
-        // cov = V V^T.
-        double gV[6];
-        for (int j = 0; j < 3; ++j) {
-          gV[j] = 2 * g_cxx * g.V[j] + g_cxy * g.V[3 + j];
-          gV[3 + j] = 2 * g_cyy * g.V[3 + j] + g_cxy * g.V[j];
-        }
-        // V = T Rq diag(s): gT = gV (Rq diag(s))^T, gM = T^T gV with M = Rq diag(s).
-        double gT[6] = {0, 0, 0, 0, 0, 0}, gRq[9], glog[3];
-        for (int r = 0; r < 2; ++r)
-          for (int k = 0; k < 3; ++k)
-            for (int j = 0; j < 3; ++j) gT[3 * r + k] += gV[3 * r + j] * g.Rq[3 * k + j] * g.s[j];
-        for (int j = 0; j < 3; ++j) {
-          double gsj = 0;
-          for (int k = 0; k < 3; ++k) {
-            const double gM = g.T[k] * gV[j] + g.T[3 + k] * gV[3 + j];
-            gRq[3 * k + j] = gM * g.s[j];
-            gsj += gM * g.Rq[3 * k + j];
-          }
-          glog[j] = gsj * g.s[j];
-        }
-        // T = J R: gJ = gT R^T (entries 00, 02, 11, 12 are the non-constant ones).
-        auto gJ = [&](int r, int k) {
-          return gT[3 * r] * c.R[3 * k] + gT[3 * r + 1] * c.R[3 * k + 1] + gT[3 * r + 2] * c.R[3 * k + 2];
-        };
-        const double gJ00 = gJ(0, 0), gJ02 = gJ(0, 2), gJ11 = gJ(1, 1), gJ12 = gJ(1, 2);
-        const double x = g.p[0], y = g.p[1], z = g.p[2], z2 = z * z, z3 = z2 * z;
-        double gx = 0, gy = 0, gz = double(uz[i]);
-        gz += gJ00 * (-c.fx / z2) + gJ11 * (-c.fy / z2) + gJ02 * (2 * c.fx * g.tx / z3) +
-              gJ12 * (2 * c.fy * g.ty / z3);
-        const double gtx = gJ02 * (-c.fx / z2), gty = gJ12 * (-c.fy / z2);
-        // tx = z clamp(x / z): d/dx = [unclamped], d/dz = clamp(x / z) - [unclamped] x / z.
-        gx += g.mx ? gtx : 0.0;
-        gz += gtx * (g.tx / z - (g.mx ? g.rx : 0.0));
-        gy += g.my ? gty : 0.0;
-        gz += gty * (g.ty / z - (g.my ? g.ry : 0.0));
-        // Screen centre.
-        const double gu = um[2 * i], gv = um[2 * i + 1];
-        gx += gu * c.fx / z;
-        gy += gv * c.fy / z;
-        gz += -gu * c.fx * x / z2 - gv * c.fy * y / z2;
-        for (int j = 0; j < 3; ++j) gmean[j] += c.R[j] * gx + c.R[3 + j] * gy + c.R[6 + j] * gz;
-        for (int j = 0; j < 3; ++j) om[3 * i + j] = static_cast<S>(gmean[j]) * wi;
-        for (int j = 0; j < 3; ++j) os[3 * i + j] = static_cast<S>(glog[j]) * wi;
-        // Rotation of the normalised quaternion.
-        const double w = g.qn[0], qx = g.qn[1], qy = g.qn[2], qz = g.qn[3];
-        const double* G = gRq;
-        double gqn[4];
-        gqn[0] = 2 * (-qz * G[1] + qy * G[2] + qz * G[3] - qx * G[5] - qy * G[6] + qx * G[7]);
-        gqn[1] = 2 * (qy * G[1] + qz * G[2] + qy * G[3] - 2 * qx * G[4] - w * G[5] + qz * G[6] + w * G[7] -
-                      2 * qx * G[8]);
-        gqn[2] = 2 * (-2 * qy * G[0] + qx * G[1] + w * G[2] + qx * G[3] + qz * G[5] - w * G[6] + qz * G[7] -
-                      2 * qy * G[8]);
-        gqn[3] = 2 * (-2 * qz * G[0] - w * G[1] + qx * G[2] + w * G[3] - 2 * qz * G[4] + qy * G[5] + qx * G[6] +
-                      qy * G[7]);
-        if (g.qnorm > kMinNorm) {
-          const double dot = gqn[0] * g.qn[0] + gqn[1] * g.qn[1] + gqn[2] * g.qn[2] + gqn[3] * g.qn[3];
-          for (int j = 0; j < 4; ++j) oq[4 * i + j] = static_cast<S>((gqn[j] - g.qn[j] * dot) / g.qnorm) * wi;
-        } else {
-          for (int j = 0; j < 4; ++j) oq[4 * i + j] = static_cast<S>(gqn[j] / kMinNorm) * wi;
-        }
-      }
-    });
+    const Params<S> P{pm, pq, ps, pl, pdc, prest, KR, nb};
+    const BackwardIO<S> O{rad, um, uc, ucol, uo, uz, sc, om, oq, os, ol, odc, orest};
+    at::parallel_for(0, N, 8192, [&](int64_t b, int64_t e) { backward_range(c, P, O, b, e); });
   });
   return {gm, gq, gs, gl, gdc, grest};
 }
