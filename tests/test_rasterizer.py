@@ -688,6 +688,26 @@ def test_cpp_binning_of_many_gaussians_is_the_same_on_any_thread_count():
         torch.set_num_threads(threads)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_cpp_binning_orders_signed_zero_negative_and_nan_depths_as_torch_sort(dtype):
+    """The compiled binning sorts depths by their bits (a radix sort): -0 ties with +0, negative depths come
+    first, NaN last, ties in index order, as the torch path's stable sort does."""
+    raster = _needs_cpp()
+    g = torch.Generator().manual_seed(8)
+    n, w, h = 3000, 64, 48
+    means2d = torch.rand(n, 2, generator=g, dtype=dtype) * torch.tensor([w, h], dtype=dtype)
+    radii = torch.randint(0, 12, (n,), generator=g, dtype=torch.int32)
+    depths = (torch.randint(-40, 40, (n,), generator=g).to(dtype) / 8)
+    depths[depths == 0] = torch.where(torch.arange(n)[depths == 0] % 2 == 0, -0.0, 0.0).to(dtype)
+    depths[::97] = float("nan")
+    depths[::89] = torch.tensor([float("inf"), -float("inf"), 1e-30, -1e-30], dtype=dtype).repeat(n)[: len(depths[::89])]
+    assert torch.signbit(depths[depths == 0]).any() and not torch.signbit(depths[depths == 0]).all()
+    ids_t, off_t = bin_gaussians(means2d, radii, depths, w, h, 8)
+    ids_c, off_c = raster.bin_gaussians(means2d, radii, depths, w, h, 8)
+    assert ids_t.numel() > 1000
+    assert torch.equal(ids_c, ids_t) and torch.equal(off_c, off_t)
+
+
 def test_cpp_full_pipeline_matches_torch_float64_and_collects_absgrad():
     _needs_cpp()
     gs = with_edge_cases(make_gaussians(30, seed=17, dtype=torch.float64)).requires_grad_()

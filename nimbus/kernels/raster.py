@@ -12,13 +12,14 @@ Call :func:`available` before :func:`composite`: it builds/loads the kernel once
 process and returns False, after ONE warning line, when that is impossible (no
 compiler, failed build); the caller then uses the torch compositor.
 
-Instruction sets.  The float32 compositing tiles are compiled three times: for
-generic x86-64, AVX2 and AVX-512 (x86-64-v4); by default the best clone the CPU runs
-is used.  ``NIMBUS_CPU_ISA=generic|avx2|avx512`` (or :func:`set_cpu_isa`) forces one,
-so that every path can be tested on one machine (``auto`` or unset: the best);
-:func:`cpu_isas` lists the clones this machine runs and :func:`cpu_isa` names the one
-in use.  The clones run the same IEEE operations in the same order (no FMA
-contraction), so they give bitwise identical results (``tests/test_cross_cpu.py``).
+Instruction sets.  The float32 compositing tiles and the projection (both dtypes) are
+compiled three times: for generic x86-64, AVX2 and AVX-512 (x86-64-v4); by default the
+best clone the CPU runs is used, the same for both.  ``NIMBUS_CPU_ISA=generic|avx2|avx512``
+(or :func:`set_cpu_isa`) forces one, so that every path can be tested on one machine
+(``auto`` or unset: the best); :func:`cpu_isas` lists the clones this machine runs and
+:func:`cpu_isa` names the one in use.  The clones run the same IEEE operations in the
+same order (no FMA contraction), so they give bitwise identical results
+(``tests/test_composite_cpp.py``, ``tests/test_rasterizer.py``).
 
 Contract
 --------

@@ -6,11 +6,14 @@
 // lists grouped by tile, front to back, depth ties broken by index), fused into one
 // pass over the Gaussians so a render does not pay for ~100 small torch ops and their
 // autograd records.  Per-Gaussian maths runs in double whatever the tensors' dtype (it
-// is a few hundred flops per Gaussian); results are rounded to the dtype at the end.
+// is a few hundred flops per Gaussian), eight Gaussians at a time (below); results are
+// rounded to the dtype at the end.
 //
 // Outputs are per Gaussian over ALL N (zeros where culled), so the compositor's
 // gradients land on the N Gaussians directly, without gathers and scatters.  Colours
-// and opacities are zero for Gaussians with radius 0 (they are never composited).
+// and opacities are zero for Gaussians with radius 0 (they are never composited).  The
+// backward does no maths for a culled Gaussian that no gradient reaches (most of a
+// view's): its gradients are zeros.
 //
 // Registered as torch.ops.nimbus_project.*; built together with composite.cpp into the
 // rasterizer extension by nimbus/kernels/raster.py.
@@ -27,6 +30,7 @@
 #include <cmath>
 #include <cstdint>
 #include <numeric>
+#include <type_traits>
 #include <tuple>
 #include <vector>
 
@@ -125,14 +129,11 @@ NIMBUS_INLINE VD vsqrt(VD x) {
   return r;
 }
 
-// The kLanes Gaussians of a block: first index, how many are real (the rest repeat the
-// last one and are never written back), and each lane's index.
+// The kLanes Gaussians of a block: each lane's index and how many are real (the rest repeat
+// the last one and are never written back).
 struct Block {
   int64_t idx[kLanes];
   int count;
-  Block(int64_t i0, int64_t end) : count(static_cast<int>(std::min<int64_t>(kLanes, end - i0))) {
-    for (int l = 0; l < kLanes; ++l) idx[l] = std::min<int64_t>(i0 + l, end - 1);
-  }
   // Up to kLanes indices from a list.
   Block(const int64_t* list, int64_t n) : count(static_cast<int>(std::min<int64_t>(kLanes, n))) {
     for (int l = 0; l < kLanes; ++l) idx[l] = list[std::min(l, count - 1)];
@@ -157,8 +158,12 @@ struct Block {
   }
 };
 
-NIMBUS_INLINE VD depth_of(const Camera& c, const VD m[3]) {
-  return c.R[6] * m[0] + c.R[7] * m[1] + c.R[8] * m[2] + c.t[2];
+// Whether Gaussian i's centre lies inside the depth range (the cull both passes start with).
+template <typename S>
+NIMBUS_INLINE bool in_depth(const Camera& c, const S* means, int64_t i) {
+  const double z0 = c.R[6] * double(means[3 * i]) + c.R[7] * double(means[3 * i + 1]) +
+                    c.R[8] * double(means[3 * i + 2]) + c.t[2];
+  return z0 > c.near && z0 < c.far;
 }
 
 // scale: exp(log_scale), computed beforehand (Block::exp_col).
@@ -292,15 +297,27 @@ NIMBUS_INLINE void forward_range_impl(const Camera& c, const Params<S>& P, const
   const VD zero = splat(0.0);
   Geo g;
   VD B[16];
-  for (int64_t i0 = b; i0 < e; i0 += kLanes) {
-    const Block blk(i0, e);
+  // Gaussians outside the depth range get zeros; the rest are gathered and run kLanes at a time.
+  std::vector<int64_t> live;
+  live.reserve(static_cast<size_t>(e - b));
+  for (int64_t i = b; i < e; ++i) {
+    if (in_depth(c, P.pm, i)) {
+      live.push_back(i);
+      continue;
+    }
+    for (int j = 0; j < 2; ++j) O.om[2 * i + j] = 0;
+    for (int j = 0; j < 3; ++j) O.oc[3 * i + j] = O.ocol[3 * i + j] = 0;
+    O.oo[i] = O.oz[i] = 0;
+    O.orad[i] = 0;
+  }
+  const int64_t n_live = static_cast<int64_t>(live.size());
+  for (int64_t p0 = 0; p0 < n_live; p0 += kLanes) {
+    const Block blk(live.data() + p0, n_live - p0);
     VD m[3], q[4], ls[3];
     for (int j = 0; j < 3; ++j) ls[j] = blk.exp_col(P.ps, 3, j, false);
     const VD e_logit = blk.exp_col(P.pl, 1, 0, true);
     for (int j = 0; j < 3; ++j) m[j] = blk.col(P.pm, 3, j);
     for (int j = 0; j < 4; ++j) q[j] = blk.col(P.pq, 4, j);
-    const VD z0 = depth_of(c, m);
-    const MD in = (z0 > c.near) & (z0 < c.far);
     geometry(c, m, q, ls, g);
     const VD mid = 0.5 * (g.cxx + g.cyy);
     const VD lam = mid + vsqrt(vmax(mid * mid - g.det, zero));
@@ -318,14 +335,7 @@ NIMBUS_INLINE void forward_range_impl(const Camera& c, const Params<S>& P, const
     }
     sh_basis(degree, dir, B, nullptr);
     for (int l = 0; l < blk.count; ++l) {
-      const int64_t i = i0 + l;
-      if (!in[l]) {
-        for (int j = 0; j < 2; ++j) O.om[2 * i + j] = 0;
-        for (int j = 0; j < 3; ++j) O.oc[3 * i + j] = O.ocol[3 * i + j] = 0;
-        O.oo[i] = O.oz[i] = 0;
-        O.orad[i] = 0;
-        continue;
-      }
+      const int64_t i = blk.idx[l];
       O.om[2 * i] = static_cast<S>(g.u[l]);
       O.om[2 * i + 1] = static_cast<S>(g.v[l]);
       O.oz[i] = static_cast<S>(g.p[2][l]);
@@ -389,12 +399,10 @@ NIMBUS_INLINE void backward_range_impl(const Camera& c, const Params<S>& P, cons
   std::vector<int64_t> live;
   live.reserve(static_cast<size_t>(e - b));
   for (int64_t i = b; i < e; ++i) {
-    const double z0 = c.R[6] * double(P.pm[3 * i]) + c.R[7] * double(P.pm[3 * i + 1]) +
-                      c.R[8] * double(P.pm[3 * i + 2]) + c.t[2];
     bool reached = O.rad[i] > 0 || O.uo[i] != 0 || O.uz[i] != 0;
     for (int j = 0; j < 2; ++j) reached = reached || O.um[2 * i + j] != 0;
     for (int j = 0; j < 3; ++j) reached = reached || O.uc[3 * i + j] != 0 || O.ucol[3 * i + j] != 0;
-    if (z0 > c.near && z0 < c.far && reached) {
+    if (reached && in_depth(c, P.pm, i)) {
       live.push_back(i);
     } else {
       zero_row(i);
@@ -680,8 +688,42 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   return {gm, gq, gs, gl, gdc, grest};
 }
 
+// Reorders `order` (Gaussian indices, ascending) by depth, ties kept in index order: what
+// std::stable_sort with z[a] < z[b] gives, by a least-significant-digit radix sort of the
+// depths' bits (a byte a pass, passes where every key has the same byte skipped), which is
+// stable and does not compare.  -0 sorts with +0 (they compare equal); NaN sorts last, as
+// with torch.sort (a comparison sort has no defined place for it).
+template <typename S>
+void sort_by_depth(std::vector<int64_t>& order, const S* z) {
+  using U = typename std::conditional<sizeof(S) == 4, uint32_t, uint64_t>::type;
+  constexpr U kSign = U(1) << (8 * sizeof(U) - 1);
+  const size_t n = order.size();
+  std::vector<U> key(n), key2(n);
+  std::vector<int64_t> order2(n);
+  for (size_t k = 0; k < n; ++k) {
+    S v = z[order[k]];
+    if (v == S(0)) v = S(0);
+    U b;
+    std::memcpy(&b, &v, sizeof(b));
+    key[k] = v != v ? ~U(0) : (b & kSign) ? ~b : (b | kSign);  // the float order as unsigned order
+  }
+  for (int shift = 0; shift < int(8 * sizeof(U)); shift += 8) {
+    size_t start[257] = {0};
+    for (size_t k = 0; k < n; ++k) ++start[((key[k] >> shift) & 255) + 1];
+    if (n == 0 || start[((key[0] >> shift) & 255) + 1] == n) continue;
+    for (int d = 0; d < 256; ++d) start[d + 1] += start[d];
+    for (size_t k = 0; k < n; ++k) {
+      const size_t pos = start[(key[k] >> shift) & 255]++;
+      key2[pos] = key[k];
+      order2[pos] = order[k];
+    }
+    key.swap(key2);
+    order.swap(order2);
+  }
+}
+
 // Tile-sorted intersection lists (binning.py's contract) for Gaussians with radius > 0.
-// Counting sort by tile of the Gaussians taken in depth order: O(N log N + I), no sort
+// Counting sort by tile of the Gaussians taken in depth order (a radix sort): O(N + I), no sort
 // of the I intersections.
 std::tuple<at::Tensor, at::Tensor> bin_gaussians(const at::Tensor& means2d, const at::Tensor& radii,
                                                  const at::Tensor& depths, int64_t width, int64_t height,
@@ -724,7 +766,7 @@ std::tuple<at::Tensor, at::Tensor> bin_gaussians(const at::Tensor& means2d, cons
       const int32_t* r = rect.data() + 4 * i;
       if (r[2] > r[0] && r[3] > r[1]) order.push_back(i);
     }
-    std::stable_sort(order.begin(), order.end(), [&](int64_t a, int64_t b) { return z[a] < z[b]; });
+    sort_by_depth(order, z);
   });
   for (int64_t i : order) {
     const int32_t* r = rect.data() + 4 * i;
