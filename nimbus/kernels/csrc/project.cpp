@@ -102,8 +102,11 @@ Camera make_camera(const at::Tensor& viewmat, const at::Tensor& K, int64_t width
 // compositing tiles, and the clone follows the compositor's (NIMBUS_CPU_ISA).  Every
 // lane runs the IEEE operations of the former one-Gaussian-at-a-time code in the same
 // order (no FMA contraction; exp, ceil and sqrt per lane with the same libm and
-// instructions), so the outputs are bitwise those of that code on any clone.  Branches
-// became selects: a lane's result is taken only where the scalar code computed it.
+// instructions), so the outputs are bitwise those of that code on any clone (but for the
+// signed zeros of the Gaussians the backward skips).  Branches became selects: a lane's
+// result is taken only where the scalar code computed it.  The colour sums stay one
+// Gaussian at a time: its coefficients are one contiguous row, and a gather of eight rows
+// cost more than the vector arithmetic saved.
 using VD = Vec<double>;
 using MD = Mask<double>;
 
