@@ -316,12 +316,12 @@ NIMBUS_INLINE void forward_range_impl(const Camera& c, const Params<S>& P, const
   const int64_t n_live = static_cast<int64_t>(live.size());
   for (int64_t p0 = 0; p0 < n_live; p0 += kLanes) {
     const Block blk(live.data() + p0, n_live - p0);
-    VD m[3], q[4], ls[3];
-    for (int j = 0; j < 3; ++j) ls[j] = blk.exp_col(P.ps, 3, j, false);
+    VD m[3], q[4], scale[3];
+    for (int j = 0; j < 3; ++j) scale[j] = blk.exp_col(P.ps, 3, j, false);
     const VD e_logit = blk.exp_col(P.pl, 1, 0, true);
     for (int j = 0; j < 3; ++j) m[j] = blk.col(P.pm, 3, j);
     for (int j = 0; j < 4; ++j) q[j] = blk.col(P.pq, 4, j);
-    geometry(c, m, q, ls, g);
+    geometry(c, m, q, scale, g);
     const VD mid = 0.5 * (g.cxx + g.cyy);
     const VD lam = mid + vsqrt(vmax(mid * mid - g.det, zero));
     const VD r_unrounded = c.radius_sigmas * vsqrt(lam);
@@ -414,12 +414,12 @@ NIMBUS_INLINE void backward_range_impl(const Camera& c, const Params<S>& P, cons
   const int64_t n_live = static_cast<int64_t>(live.size());
   for (int64_t p0 = 0; p0 < n_live; p0 += kLanes) {
     const Block blk(live.data() + p0, n_live - p0);
-    VD m[3], q[4], ls[3];
-    for (int j = 0; j < 3; ++j) ls[j] = blk.exp_col(P.ps, 3, j, false);
+    VD m[3], q[4], scale[3];
+    for (int j = 0; j < 3; ++j) scale[j] = blk.exp_col(P.ps, 3, j, false);
     const VD e_logit = blk.exp_col(P.pl, 1, 0, true);
     for (int j = 0; j < 3; ++j) m[j] = blk.col(P.pm, 3, j);
     for (int j = 0; j < 4; ++j) q[j] = blk.col(P.pq, 4, j);
-    geometry(c, m, q, ls, g);
+    geometry(c, m, q, scale, g);
     MD vis;
     for (int l = 0; l < kLanes; ++l) vis[l] = O.rad[blk.idx[l]] > 0 ? -1 : 0;
     VD wi;  // x * 1 is x: the unscaled bits when there is no factor
