@@ -293,9 +293,9 @@ struct ForwardOut {
   int32_t* orad;
 };
 
+// The forward of Gaussians [b, e).
 template <typename S>
-NIMBUS_INLINE void forward_range_impl(const Camera& c, const Params<S>& P, const ForwardOut<S>& O, int64_t b,
-                                      int64_t e) {
+NIMBUS_INLINE void range_impl(const Camera& c, const Params<S>& P, const ForwardOut<S>& O, int64_t b, int64_t e) {
   const int64_t degree = c.degree, nb = P.nb, KR = P.KR;
   const VD zero = splat(0.0);
   Geo g;
@@ -381,9 +381,9 @@ NIMBUS_INLINE VD gJ(const VD* gT, const Camera& c, int r, int k) {
   return gT[3 * r] * c.R[3 * k] + gT[3 * r + 1] * c.R[3 * k + 1] + gT[3 * r + 2] * c.R[3 * k + 2];
 }
 
+// The backward of Gaussians [b, e).
 template <typename S>
-NIMBUS_INLINE void backward_range_impl(const Camera& c, const Params<S>& P, const BackwardIO<S>& O, int64_t b,
-                                       int64_t e) {
+NIMBUS_INLINE void range_impl(const Camera& c, const Params<S>& P, const BackwardIO<S>& O, int64_t b, int64_t e) {
   const int64_t degree = c.degree, nb = P.nb, KR = P.KR;
   const VD zero = splat(0.0);
   Geo g;
@@ -553,67 +553,38 @@ NIMBUS_INLINE void backward_range_impl(const Camera& c, const Params<S>& P, cons
   }
 }
 
-// The clones.  One range of Gaussians per call (a parallel_for chunk), so the switch is paid once per chunk.
-template <typename S>
-void forward_range_generic(const Camera& c, const Params<S>& P, const ForwardOut<S>& O, int64_t b, int64_t e) {
-  forward_range_impl(c, P, O, b, e);
-}
-template <typename S>
-void backward_range_generic(const Camera& c, const Params<S>& P, const BackwardIO<S>& O, int64_t b, int64_t e) {
-  backward_range_impl(c, P, O, b, e);
+// The clones, one set for both passes (range_impl is overloaded on the pass's output struct).  One
+// range of Gaussians per call (a parallel_for chunk), so the switch is paid once per chunk.
+template <typename S, typename Out>
+void range_generic(const Camera& c, const Params<S>& P, const Out& O, int64_t b, int64_t e) {
+  range_impl(c, P, O, b, e);
 }
 #ifdef NIMBUS_HAS_AVX2_CLONE
-template <typename S>
-NIMBUS_TARGET_AVX2 void forward_range_avx2(const Camera& c, const Params<S>& P, const ForwardOut<S>& O, int64_t b,
-                                           int64_t e) {
-  forward_range_impl(c, P, O, b, e);
-}
-template <typename S>
-NIMBUS_TARGET_AVX2 void backward_range_avx2(const Camera& c, const Params<S>& P, const BackwardIO<S>& O, int64_t b,
-                                            int64_t e) {
-  backward_range_impl(c, P, O, b, e);
+template <typename S, typename Out>
+NIMBUS_TARGET_AVX2 void range_avx2(const Camera& c, const Params<S>& P, const Out& O, int64_t b, int64_t e) {
+  range_impl(c, P, O, b, e);
 }
 #endif
 #ifdef NIMBUS_HAS_AVX512_CLONE
-template <typename S>
-NIMBUS_TARGET_AVX512 void forward_range_avx512(const Camera& c, const Params<S>& P, const ForwardOut<S>& O,
-                                               int64_t b, int64_t e) {
-  forward_range_impl(c, P, O, b, e);
-}
-template <typename S>
-NIMBUS_TARGET_AVX512 void backward_range_avx512(const Camera& c, const Params<S>& P, const BackwardIO<S>& O,
-                                                int64_t b, int64_t e) {
-  backward_range_impl(c, P, O, b, e);
+template <typename S, typename Out>
+NIMBUS_TARGET_AVX512 void range_avx512(const Camera& c, const Params<S>& P, const Out& O, int64_t b, int64_t e) {
+  range_impl(c, P, O, b, e);
 }
 #endif
-template <typename S>
-void forward_range(const Camera& c, const Params<S>& P, const ForwardOut<S>& O, int64_t b, int64_t e) {
+// Gaussians [b, e) of one pass, on the compositor's clone.
+template <typename S, typename Out>
+void run_range(const Camera& c, const Params<S>& P, const Out& O, int64_t b, int64_t e) {
   switch (nimbus_composite::active_isa_index()) {
 #ifdef NIMBUS_HAS_AVX512_CLONE
     case 2:
-      return forward_range_avx512(c, P, O, b, e);
+      return range_avx512(c, P, O, b, e);
 #endif
 #ifdef NIMBUS_HAS_AVX2_CLONE
     case 1:
-      return forward_range_avx2(c, P, O, b, e);
+      return range_avx2(c, P, O, b, e);
 #endif
     default:
-      return forward_range_generic(c, P, O, b, e);
-  }
-}
-template <typename S>
-void backward_range(const Camera& c, const Params<S>& P, const BackwardIO<S>& O, int64_t b, int64_t e) {
-  switch (nimbus_composite::active_isa_index()) {
-#ifdef NIMBUS_HAS_AVX512_CLONE
-    case 2:
-      return backward_range_avx512(c, P, O, b, e);
-#endif
-#ifdef NIMBUS_HAS_AVX2_CLONE
-    case 1:
-      return backward_range_avx2(c, P, O, b, e);
-#endif
-    default:
-      return backward_range_generic(c, P, O, b, e);
+      return range_generic(c, P, O, b, e);
   }
 }
 
@@ -639,7 +610,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     int32_t* orad = radii.data_ptr<int32_t>();
     const Params<S> P{pm, pq, ps, pl, pdc, prest, KR, nb};
     const ForwardOut<S> O{om, oc, ocol, oo, oz, orad};
-    at::parallel_for(0, N, 8192, [&](int64_t b, int64_t e) { forward_range(c, P, O, b, e); });
+    at::parallel_for(0, N, 8192, [&](int64_t b, int64_t e) { run_range(c, P, O, b, e); });
   });
   return {means2d, conics, colors, opac, depths, radii};
 }
@@ -686,7 +657,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     const S* sc = scaled ? row_scale.data_ptr<S>() : nullptr;
     const Params<S> P{pm, pq, ps, pl, pdc, prest, KR, nb};
     const BackwardIO<S> O{rad, um, uc, ucol, uo, uz, sc, om, oq, os, ol, odc, orest};
-    at::parallel_for(0, N, 8192, [&](int64_t b, int64_t e) { backward_range(c, P, O, b, e); });
+    at::parallel_for(0, N, 8192, [&](int64_t b, int64_t e) { run_range(c, P, O, b, e); });
   });
   return {gm, gq, gs, gl, gdc, grest};
 }
