@@ -168,32 +168,54 @@ class InlineExecutor:
             yield run_cell(c, root, options)
 
 
+#: ``--jobs auto``: as many workers as cores and memory allow, one torch thread each (:class:`LocalExecutor`).
+AUTO_JOBS = "auto"
+
+
 class LocalExecutor:
     """Runs cells in local worker processes, each running many cells (:class:`benchmark.workers.CellWorkers`).
 
     Parameters
     ----------
-    jobs : int
+    jobs : int or "auto"
         Cells run at once (default 1).  Each worker gets ``max(1, cores // jobs)`` torch threads, counting
         the cores this process may run on (:func:`nimbus.utils.cpus.usable_cpus`: a ``taskset`` or a
         scheduler's CPU set, not the machine's count).
+
+        ``"auto"`` (``nimbus-bench run``'s default) on the CPU: one worker per core, each with one torch
+        thread, at most one per cell, and no more than the memory holds: until a cell has finished, at most
+        two run at once; then as many as fit in the memory that was available at the start (:func:`
+        nimbus.utils.memory.available_memory`) at the largest peak a cell has had so far.  Separate
+        processes scale where threads do not (the kernels' parallel sections are short), and one thread a
+        cell makes its figures independent of how many cores the machine has.  On CUDA, ``"auto"`` is one
+        worker with every core, as ``jobs=1``.
     """
 
     name = "local"
 
-    def __init__(self, jobs: int = 1) -> None:
-        if jobs < 1:
-            raise NimbusError(f"--jobs must be at least 1, got {jobs}")
-        self.jobs = int(jobs)
+    def __init__(self, jobs: int | str = 1) -> None:
+        if jobs == AUTO_JOBS:
+            self.jobs: int | None = None
+            return
+        if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+            raise NimbusError(f"--jobs must be auto or at least 1, got {jobs}")
+        self.jobs = jobs
 
     def threads(self) -> int:
-        return max(1, usable_cpus() // self.jobs)
+        return 1 if self.jobs is None else max(1, usable_cpus() // self.jobs)
 
     def imap(self, cells: Sequence[Cell], root: str, options: CellOptions) -> Iterator[dict]:
+        from benchmark.cell import runs_on_cuda
         from benchmark.workers import CellWorkers
+        from nimbus.utils.memory import available_memory
 
+        if self.jobs is None and runs_on_cuda(options):
+            return LocalExecutor(1).imap(cells, root, options)
         if options.threads is None:
             options = dataclasses.replace(options, threads=self.threads())
+        if self.jobs is None:
+            return CellWorkers(max(1, min(usable_cpus(), len(cells))), memory=available_memory()).imap(
+                cells, root, options)
         return CellWorkers(self.jobs).imap(cells, root, options)
 
 
@@ -252,7 +274,7 @@ class DaskExecutor:
                 client.close()
 
 
-def make_executor(name: str, jobs: int = 1, scheduler: str | None = None) -> Executor:
+def make_executor(name: str, jobs: int | str = 1, scheduler: str | None = None) -> Executor:
     """``local`` (processes), ``dask`` (needs ``scheduler``) or ``inline`` (this process)."""
     if name == "local":
         return LocalExecutor(jobs)
@@ -264,7 +286,19 @@ def make_executor(name: str, jobs: int = 1, scheduler: str | None = None) -> Exe
 
 
 # --- command-line flags of the verbs that run cells (``run``, ``tradeoff``) ------------------------
-def add_run_arguments(p, jobs_help: str) -> None:
+def jobs_arg(value: str) -> int | str:
+    """``--jobs``: ``auto`` or a number of workers (checked by :class:`LocalExecutor`)."""
+    import argparse
+
+    if value.strip().lower() == AUTO_JOBS:
+        return AUTO_JOBS
+    try:
+        return int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expects auto or a positive number of workers, got {value!r}") from None
+
+
+def add_run_arguments(p, jobs_help: str, jobs_default: int | str = 1) -> None:
     """The flags that say where and how cells run and are scored, and how the run reports."""
     from benchmark.metrics import EVAL_PROTOCOLS
     from nimbus.metrics import LPIPS_NETS, SSIM_PROTOCOLS
@@ -272,7 +306,7 @@ def add_run_arguments(p, jobs_help: str) -> None:
     p.add_argument("--executor", choices=("local", "dask"), default="local",
                    help="local: worker processes; dask: tasks on a Dask distributed cluster")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS", help="Dask scheduler address (with --executor dask)")
-    p.add_argument("--jobs", type=int, default=1, help=jobs_help)
+    p.add_argument("--jobs", type=jobs_arg, default=jobs_default, metavar="{auto,N}", help=jobs_help)
     p.add_argument("--protocol", choices=tuple(EVAL_PROTOCOLS), default="default",
                    help="; ".join(f"{k}: {v.summary}" for k, v in EVAL_PROTOCOLS.items()))
     p.add_argument("--ssim", choices=tuple(SSIM_PROTOCOLS), default="3dgs", help="SSIM protocol (3dgs: paper)")

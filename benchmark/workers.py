@@ -136,6 +136,8 @@ class _Worker:
         child.close()
         self.cell: Cell | None = None
         self.started_at: str | None = None
+        #: The most cells running at once (this one's included) while its cell ran.
+        self.at_once = 0
         #: False once it has said it takes no further cell (or died).
         self.reusable = True
 
@@ -147,6 +149,7 @@ class _Worker:
             self.reusable = False
             return False
         self.cell, self.started_at = cell, utc_now()
+        self.at_once = 1
         return True
 
     def result(self) -> dict:
@@ -155,7 +158,7 @@ class _Worker:
         try:
             if self.conn.poll():
                 record, self.reusable = self.conn.recv()
-                return record
+                return {**record, "cells_at_once": self.at_once}
         except (EOFError, OSError):
             pass
         self.reusable = False
@@ -175,6 +178,12 @@ class _Worker:
         self.conn.close()
 
 
+#: With a memory budget (``--jobs auto``), cells run at once before any has said how much memory it takes.
+FIRST_WAVE = 2
+#: The share of the budget that the workers' peaks may fill (the parent scores beside them, with LPIPS).
+MEMORY_SHARE = 0.8
+
+
 class CellWorkers:
     """Runs cells in ``jobs`` long-lived local worker processes, yielding each record as it comes back.
 
@@ -182,10 +191,35 @@ class CellWorkers:
     ----------
     jobs : int
         Workers, i.e. cells running at once (at most one per cell).
+    memory : int, optional
+        Bytes the workers may take together (``--jobs auto``).  Until a cell's record has come back, at
+        most :data:`FIRST_WAVE` workers run; then at most as many as :data:`MEMORY_SHARE` of ``memory`` holds at
+        the largest peak (``peak_memory_mb``) a cell of this run has had.  A worker beyond that is stopped
+        when its cell is done.  None: ``jobs`` workers from the start.
+
+    Each record gets ``cells_at_once``: the most cells that ran at the same time while it trained (its
+    ``train_time_s`` grows with them, as they share the memory bus).
     """
 
-    def __init__(self, jobs: int) -> None:
+    def __init__(self, jobs: int, memory: int | None = None) -> None:
         self.jobs = jobs
+        self.memory = memory
+        #: The largest peak memory of a cell so far (MB), None before any record.
+        self.peak_mb: float | None = None
+
+    def allowed(self) -> int:
+        """Workers that may run now."""
+        if self.memory is None:
+            return self.jobs
+        if self.peak_mb is None:
+            return min(self.jobs, FIRST_WAVE)
+        fits = int(MEMORY_SHARE * self.memory // (self.peak_mb * 2 ** 20)) if self.peak_mb > 0 else self.jobs
+        return max(1, min(self.jobs, fits))
+
+    def _note_peak(self, record: dict) -> None:
+        peak = record.get("peak_memory_mb")
+        if isinstance(peak, (int, float)) and peak == peak:
+            self.peak_mb = max(self.peak_mb or 0.0, float(peak))
 
     def imap(self, cells: Sequence[Cell], root: str, options: CellOptions) -> Iterator[dict]:
         import multiprocessing
@@ -200,12 +234,17 @@ class CellWorkers:
                 for w in [w for w in workers if not w.reusable]:
                     w.stop()  # it died, or ran its one cell (the peak memory cannot be reset here)
                     workers.remove(w)
-                while todo and len(workers) < self.jobs:
+                for w in [w for w in workers if w.cell is None][:max(0, len(workers) - self.allowed())]:
+                    w.stop()  # more workers than the memory holds at the cells' peak: one fewer
+                    workers.remove(w)
+                while todo and len(workers) < self.allowed():
                     workers.append(_Worker(ctx))
                 for w in workers:
                     if w.cell is None and todo and w.send(todo[-1], root, options):
                         todo.pop()
                 busy = [w for w in workers if w.cell is not None]
+                for w in busy:
+                    w.at_once = max(w.at_once, len(busy))
                 if not busy:
                     if todo:
                         continue  # the idle workers had died: replaced above
@@ -214,8 +253,10 @@ class CellWorkers:
                 for handle in wait(list(by_handle)):
                     w = by_handle[handle]
                     if w.cell is not None:
+                        record = w.result()
+                        self._note_peak(record)
                         # Scored here while the worker waits: no cell trains beside its own scoring.
-                        yield score_cell(w.result(), root, options)
+                        yield score_cell(record, root, options)
         finally:
             for w in workers:
                 w.stop()

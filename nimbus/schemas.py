@@ -112,6 +112,9 @@ class ResultRecord(Schema):
     peak_memory_mb: Measure = None
     threads: Optional[int] = Field(default=None, description="torch CPU threads the training ran with (results "
                                    "at small size move with it by float rounding; absent in old records)")
+    cells_at_once: Optional[int] = Field(default=None, description="the most benchmark cells that trained at the "
+                                         "same time while this one did (train_time_s grows with them; absent in "
+                                         "old records)")
     render_fps: Measure = None
     num_gaussians: Optional[int] = None
     num_params: Optional[int] = None

@@ -589,6 +589,49 @@ def test_worker_threads_count_the_cores_this_process_may_use(monkeypatch):
     assert LocalExecutor(jobs=2).threads() == 32
 
 
+
+def test_auto_jobs_give_each_worker_one_thread_and_refuse_nonsense():
+    # One thread a cell: its figures do not depend on how many cores the machine has.
+    assert LocalExecutor("auto").threads() == 1 and LocalExecutor("auto").jobs is None
+    for bad in (0, -1, "two", 1.5, True):
+        with pytest.raises(NimbusError, match="--jobs"):
+            LocalExecutor(bad)
+    assert grid.jobs_arg("AUTO") == "auto" and grid.jobs_arg("3") == 3
+
+
+def test_auto_workers_start_two_then_as_many_as_the_memory_holds_at_the_cells_peak():
+    from benchmark.workers import FIRST_WAVE, MEMORY_SHARE, CellWorkers
+
+    mib = 2 ** 20
+    assert CellWorkers(8).allowed() == 8  # no budget: --jobs N runs N
+    w = CellWorkers(8, memory=100_000 * mib)
+    assert w.allowed() == FIRST_WAVE  # no cell has said what it takes yet
+    w._note_peak({"peak_memory_mb": 1000.0})
+    assert w.allowed() == 8  # 80 of them would fit: the cores bound it
+    w._note_peak({"peak_memory_mb": float("nan")})  # a record without a usable peak changes nothing
+    w._note_peak({"status": "error"})
+    assert w.allowed() == 8
+    w._note_peak({"peak_memory_mb": 100_000 * MEMORY_SHARE / 3 + 1})
+    assert w.allowed() == 2  # the largest peak so far counts
+    w._note_peak({"peak_memory_mb": 10 ** 9})
+    assert w.allowed() == 1  # never none
+    assert CellWorkers(1, memory=100_000 * mib).allowed() == 1
+
+
+def test_auto_workers_retire_when_a_peak_says_fewer_fit(tmp_path, finished):
+    """Three cells and a budget that holds none: the first two run at once (no peak known yet), the third alone."""
+    from benchmark.workers import CellWorkers
+
+    root = copy_data(finished[0], tmp_path)
+    workers = CellWorkers(2, memory=1)
+    todo = build_cells(["garden"], ["H", "R"], ["3dgs"], ["tiny"], [0, 1], "tiny", OVERRIDES)[:3]  # data made
+    records = list(workers.imap(todo, str(root), dataclasses.replace(OPTIONS, threads=1)))
+    assert [r["status"] for r in records] == ["ok"] * 3
+    assert workers.peak_mb > 0 and workers.allowed() == 1
+    assert [r["cells_at_once"] for r in records] == [2, 2, 1]
+    assert all(r["threads"] == 1 for r in records)
+
+
 PARENT_WITH_A_BUSY_CHILD = """
 import multiprocessing, os, sys, time
 from benchmark.workers import exit_with_parent

@@ -19,8 +19,8 @@ from pathlib import Path
 import warnings
 
 from benchmark.cell import CEILING_METHOD, DEFAULT_PRESET, DEFAULT_SIZE
-from benchmark.grid import (add_run_arguments, build_cells, executor_from_args, options_from_args, split_names,
-                            resolve_methods, run_grid, say_failed)
+from benchmark.grid import (AUTO_JOBS, add_run_arguments, build_cells, executor_from_args, options_from_args,
+                            resolve_methods, run_grid, say_failed, split_names)
 from nimbus.cli_util import check_seed
 from nimbus.errors import NimbusError
 
@@ -51,7 +51,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="do not train the clean ceiling (3dgs on each scene's clean training views, one cell per scene "
                         "x preset x seed) that the tables give every method's gap to")
     p.add_argument("--root", default=DEFAULT_ROOT, help="benchmark folder (data, runs, results.jsonl)")
-    add_run_arguments(p, jobs_help="local worker processes (each gets cores/jobs torch threads)")
+    add_run_arguments(p, jobs_help="local worker processes: auto (default) runs one cell per core with one torch "
+                                   "thread each, as many as memory holds; N runs N with cores/N threads each",
+                      jobs_default=AUTO_JOBS)
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="trainer config override (repeatable)")
 
 

@@ -105,6 +105,22 @@ def memory_limit(device=None) -> tuple[int, str]:
     return limit, source
 
 
+MEMINFO = Path("/proc/meminfo")
+
+
+def available_memory() -> int:
+    """Bytes that new processes may take now: :func:`memory_limit` (the machine's, its container's or
+    :data:`MEMORY_LIMIT_ENV`), lowered to Linux's ``MemAvailable`` estimate where ``/proc`` has one."""
+    limit, _ = memory_limit()
+    try:
+        for line in MEMINFO.read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return min(limit, int(line.split()[1]) * 1024)
+    except (OSError, ValueError, IndexError):
+        pass
+    return limit
+
+
 @dataclasses.dataclass(frozen=True)
 class SizeCost:
     """What one size-like setting would allocate.
