@@ -182,13 +182,13 @@ class LocalExecutor:
         the cores this process may run on (:func:`nimbus.utils.cpus.usable_cpus`: a ``taskset`` or a
         scheduler's CPU set, not the machine's count).
 
-        ``"auto"`` (``nimbus-bench run``'s default) on the CPU: one worker per core, each with one torch
-        thread, at most one per cell, and no more than the memory holds: until a cell has finished, at most
-        two run at once; then as many as fit in the memory that was available at the start (:func:`
-        nimbus.utils.memory.available_memory`) at the largest peak a cell has had so far.  Separate
-        processes scale where threads do not (the kernels' parallel sections are short), and one thread a
-        cell makes its figures independent of how many cores the machine has.  On CUDA, ``"auto"`` is one
-        worker with every core, as ``jobs=1``.
+        ``"auto"`` (``nimbus-bench run``'s default) on the CPU: one worker per core with one torch thread
+        each, at most one worker per cell (fewer cells than cores share the cores out), and no more than
+        the memory holds: until a cell has finished at most two run at once, then as many as fit in the
+        memory available at the start (:func:`nimbus.utils.memory.available_memory`) at the largest peak a
+        cell has had so far.  Separate processes scale where threads do not (a step's parallel sections are
+        short), and one thread a cell makes its figures independent of how many cores the machine has.  On
+        CUDA, ``"auto"`` is one worker with every core, as ``jobs=1``.
     """
 
     name = "local"
@@ -201,8 +201,15 @@ class LocalExecutor:
             raise NimbusError(f"--jobs must be auto or at least 1, got {jobs}")
         self.jobs = jobs
 
-    def threads(self) -> int:
-        return 1 if self.jobs is None else max(1, usable_cpus() // self.jobs)
+    def workers(self, cells: int | None = None) -> int:
+        """Workers for ``cells`` cells (``auto``: one per core, at most one per cell; before the memory's say)."""
+        if self.jobs is not None:
+            return self.jobs
+        return max(1, min(usable_cpus(), cells if cells is not None else usable_cpus()))
+
+    def threads(self, cells: int | None = None) -> int:
+        """Torch threads of each worker: the cores shared among the workers."""
+        return max(1, usable_cpus() // self.workers(cells))
 
     def imap(self, cells: Sequence[Cell], root: str, options: CellOptions) -> Iterator[dict]:
         from benchmark.cell import runs_on_cuda
@@ -212,11 +219,9 @@ class LocalExecutor:
         if self.jobs is None and runs_on_cuda(options):
             return LocalExecutor(1).imap(cells, root, options)
         if options.threads is None:
-            options = dataclasses.replace(options, threads=self.threads())
-        if self.jobs is None:
-            return CellWorkers(max(1, min(usable_cpus(), len(cells))), memory=available_memory()).imap(
-                cells, root, options)
-        return CellWorkers(self.jobs).imap(cells, root, options)
+            options = dataclasses.replace(options, threads=self.threads(len(cells)))
+        memory = available_memory() if self.jobs is None else None
+        return CellWorkers(self.workers(len(cells)), memory=memory).imap(cells, root, options)
 
 
 class DaskExecutor:

@@ -92,12 +92,13 @@ def exit_with_parent(parent: int, poll_s: float = 1.0) -> threading.Thread:
     return thread
 
 
-def serve(conn: Connection, parent: int | None = None) -> None:
+def serve(conn: Connection, parent: int | None = None, index: int = 0) -> None:
     """A worker's life: train each ``(cell, root, options)`` received, until ``None`` or the parent is gone.
 
     Warms up before its first cell (and again should the options change); exits after one cell
     where the peak memory cannot be reset between cells, and within a second of the parent
-    process ``parent`` ending, even in the middle of a cell (:func:`exit_with_parent`).
+    process ``parent`` ending, even in the middle of a cell (:func:`exit_with_parent`).  Odd-numbered
+    workers (``index``) load the compiled kernels in reverse order (:func:`~benchmark.cell.warm_up`).
     """
     if parent is not None:
         exit_with_parent(parent)
@@ -111,7 +112,7 @@ def serve(conn: Connection, parent: int | None = None) -> None:
             return
         cell, root, options = task
         if warmed != options:
-            warm_up(options)
+            warm_up(options, reverse=index % 2 == 1)
             warmed = options
         reusable = reset_peak_memory()
         conn.send((train_cell(cell, root, options), reusable))
@@ -129,11 +130,12 @@ def prebuild_extensions(ctx, options: CellOptions) -> None:
 class _Worker:
     """One spawned worker process, the pipe to it, and the cell it is running (None when idle)."""
 
-    def __init__(self, ctx) -> None:
+    def __init__(self, ctx, index: int = 0) -> None:
         self.conn, child = ctx.Pipe()
-        self.process = ctx.Process(target=serve, args=(child, os.getpid()), name="nimbus-bench-worker")
+        self.process = ctx.Process(target=serve, args=(child, os.getpid(), index), name="nimbus-bench-worker")
         self.process.start()
         child.close()
+        self.index = index
         self.cell: Cell | None = None
         self.started_at: str | None = None
         #: The most cells running at once (this one's included) while its cell ran.
@@ -238,7 +240,8 @@ class CellWorkers:
                     w.stop()  # more workers than the memory holds at the cells' peak: one fewer
                     workers.remove(w)
                 while todo and len(workers) < self.allowed():
-                    workers.append(_Worker(ctx))
+                    taken = {w.index for w in workers}
+                    workers.append(_Worker(ctx, next(i for i in range(len(workers) + 1) if i not in taken)))
                 for w in workers:
                     if w.cell is None and todo and w.send(todo[-1], root, options):
                         todo.pop()

@@ -296,7 +296,7 @@ def test_a_worker_that_cannot_reset_the_peak_runs_one_cell(monkeypatch):
 
     from benchmark import workers
 
-    monkeypatch.setattr(workers, "warm_up", lambda options: None)
+    monkeypatch.setattr(workers, "warm_up", lambda options, reverse=False: None)
     monkeypatch.setattr(workers, "reset_peak_memory", lambda: False)
     monkeypatch.setattr(workers, "train_cell", lambda c, root, options: {"cell_id": c["scene"]})
     parent, child = multiprocessing.Pipe()
@@ -587,6 +587,10 @@ def test_worker_threads_count_the_cores_this_process_may_use(monkeypatch):
     assert LocalExecutor(jobs=2).threads() == 4 and LocalExecutor(jobs=16).threads() == 1
     monkeypatch.delattr(os, "sched_getaffinity", raising=False)  # no affinity query (macOS): the machine's count
     assert LocalExecutor(jobs=2).threads() == 32
+    # auto: one worker per core, one thread each; fewer cells than cores share the cores out.
+    assert LocalExecutor("auto").workers(200) == 64 and LocalExecutor("auto").threads(200) == 1
+    assert LocalExecutor("auto").workers(3) == 3 and LocalExecutor("auto").threads(3) == 21
+    assert LocalExecutor("auto").workers(1) == 1 and LocalExecutor("auto").threads(1) == 64
 
 
 

@@ -25,9 +25,16 @@ def test_a_cuda_worker_loads_gsplat_not_the_cpu_kernels(calls):
     assert calls == ["gsplat"]
 
 
-def test_a_cpu_worker_loads_the_cpu_kernels(calls):
+def test_a_cpu_worker_loads_the_cpu_kernels(calls, monkeypatch):
+    from nimbus.kernels import march, train_step
+
+    monkeypatch.setattr(march.EXTENSION, "available", lambda warn=True: calls.append("march") or True)
+    monkeypatch.setattr(train_step.EXTENSION, "available", lambda warn=True: calls.append("train_step") or True)
     warm_up(CellOptions(device="cpu"))
-    assert calls == ["raster"]
+    assert calls == ["raster", "march", "train_step"]
+    calls.clear()
+    warm_up(CellOptions(device="cpu"), reverse=True)  # a second worker builds another library meanwhile
+    assert calls == ["train_step", "march", "raster"]
 
 
 @pytest.fixture
@@ -101,7 +108,7 @@ def test_a_cuda_run_of_several_workers_builds_the_extension_once_first(monkeypat
     seen = []
     monkeypatch.setattr(workers, "prebuild_extensions", lambda ctx, options: seen.append("prebuild"))
 
-    def worker(ctx):
+    def worker(ctx, index=0):
         seen.append("worker")
         raise _Stop  # the order is all this test needs: no process starts
 
