@@ -187,8 +187,8 @@ class LocalExecutor:
         the memory holds: until a cell has finished at most two run at once, then as many as fit in the
         memory available at the start (:func:`nimbus.utils.memory.available_memory`) at the largest peak a
         cell has had so far.  Separate processes scale where threads do not (a step's parallel sections are
-        short), and one thread a cell makes its figures independent of how many cores the machine has.  On
-        CUDA, ``"auto"`` is one worker with every core, as ``jobs=1``.
+        short), and one thread a cell makes its figures independent of how many cores the machine has (given
+        as many cells as cores).  On CUDA, ``"auto"`` is one worker with every core, as ``jobs=1``.
     """
 
     name = "local"
