@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Iterator, Protocol, Sequence
 
 from benchmark.cell import (CEILING, CEILING_METHOD, DEFAULT_SIZE, Cell, CellOptions, error_record, make_config,
-                            prepare_data, run_cell, utc_now)
+                            prepare_data, run_cell, runs_on_cuda, utc_now)
 from benchmark.store import FileLock, ResultsStore, data_name_of
 from nimbus.errors import NimbusError
 from nimbus.utils.cpus import usable_cpus
@@ -212,7 +212,6 @@ class LocalExecutor:
         return max(1, usable_cpus() // self.workers(cells))
 
     def imap(self, cells: Sequence[Cell], root: str, options: CellOptions) -> Iterator[dict]:
-        from benchmark.cell import runs_on_cuda
         from benchmark.workers import CellWorkers
         from nimbus.utils.memory import available_memory
 

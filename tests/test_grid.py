@@ -593,9 +593,8 @@ def test_worker_threads_count_the_cores_this_process_may_use(monkeypatch):
     assert LocalExecutor("auto").workers(1) == 1 and LocalExecutor("auto").threads(1) == 64
 
 
-
 def test_auto_jobs_give_each_worker_one_thread_and_refuse_nonsense():
-    # One thread a cell: its figures do not depend on how many cores the machine has.
+    # One thread a cell (as many cells as cores): its figures do not depend on how many cores the machine has.
     assert LocalExecutor("auto").threads() == 1 and LocalExecutor("auto").jobs is None
     for bad in (0, -1, "two", 1.5, True):
         with pytest.raises(NimbusError, match="--jobs"):
@@ -620,6 +619,20 @@ def test_auto_workers_start_two_then_as_many_as_the_memory_holds_at_the_cells_pe
     w._note_peak({"peak_memory_mb": 10 ** 9})
     assert w.allowed() == 1  # never none
     assert CellWorkers(1, memory=100_000 * mib).allowed() == 1
+
+
+def test_auto_budget_is_memavailable_within_the_memory_limit(tmp_path, monkeypatch):
+    from nimbus.utils import memory
+
+    info = tmp_path / "meminfo"
+    info.write_text("MemTotal:       8000000 kB\nMemAvailable:      1024 kB\n")
+    monkeypatch.setattr(memory, "MEMINFO", info)
+    monkeypatch.setenv(memory.MEMORY_LIMIT_ENV, "1")
+    assert memory.available_memory() == 2 ** 20  # MemAvailable, below the 1 GiB limit
+    info.write_text("MemAvailable:   99999999 kB\n")
+    assert memory.available_memory() == 2 ** 30  # the limit, below MemAvailable
+    monkeypatch.setattr(memory, "MEMINFO", tmp_path / "absent")
+    assert memory.available_memory() == 2 ** 30  # no /proc: the limit alone
 
 
 def test_auto_workers_retire_when_a_peak_says_fewer_fit(tmp_path, finished):

@@ -37,10 +37,11 @@ CLEAR_REFS = Path("/proc/self/clear_refs")
 RESET_HIGH_WATER_MARK = "5"
 
 
-def status_kb(field: str) -> int | None:
-    """A ``kB`` field of ``/proc/self/status`` (``VmHWM``, ``VmRSS``), None where there is none."""
+def status_kb(field: str, path: Path | None = None) -> int | None:
+    """A ``kB`` field of ``/proc/self/status`` (``VmHWM``, ``VmRSS``), or of ``path`` in that format
+    (``/proc/meminfo``), None where there is none."""
     try:
-        with open(STATUS) as f:
+        with open(path or STATUS) as f:
             for line in f:
                 if line.startswith(field + ":"):
                     return int(line.split()[1])
@@ -112,13 +113,8 @@ def available_memory() -> int:
     """Bytes that new processes may take now: :func:`memory_limit` (the machine's, its container's or
     :data:`MEMORY_LIMIT_ENV`), lowered to Linux's ``MemAvailable`` estimate where ``/proc`` has one."""
     limit, _ = memory_limit()
-    try:
-        for line in MEMINFO.read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return min(limit, int(line.split()[1]) * 1024)
-    except (OSError, ValueError, IndexError):
-        pass
-    return limit
+    kb = status_kb("MemAvailable", MEMINFO)
+    return limit if kb is None else min(limit, kb * 1024)
 
 
 @dataclasses.dataclass(frozen=True)
