@@ -474,8 +474,8 @@ def warm_up(options: CellOptions, reverse: bool = False) -> None:
     the cell, which records why.
 
     ``reverse`` loads the CPU kernels' libraries in the opposite order: two workers that start together
-    then build different libraries at once instead of one waiting on the other's build lock (a fresh
-    checkout's build, two workers on two cores: 64 s against 79 s one after the other).
+    then build different libraries at once instead of one waiting on the other's build lock (docs/performance.md,
+    "Workers and threads").
     """
     import torch
 

@@ -15,6 +15,7 @@ import subprocess
 import sys
 import time
 import warnings
+from pathlib import Path
 
 import pytest
 import torch
@@ -511,6 +512,32 @@ def test_torch_lock_of_a_killed_build_is_removed_at_once(tmp_path):
     with extension.build_turn(str(tmp_path), say=said.append):  # nothing left over: nothing said
         pass
     assert len(said) == 1
+
+
+def test_a_library_of_several_sources_compiles_as_one_translation_unit():
+    # torch's headers are most of a small source's compile: parsed once per library, not once per file.
+    ext = raster.EXTENSION
+    if not ext.available(warn=False):
+        pytest.skip(f"compiled rasterizer unavailable: {ext.load_error()}")
+    ninja = Path(ext.build_dir(), "build.ninja").read_text()
+    compiled = [line for line in ninja.splitlines() if line.startswith("build ") and ": compile " in line]
+    assert len(compiled) == 1 and compiled[0].endswith("_unity.cpp"), compiled
+    unity = Path(compiled[0].split(": compile ", 1)[1]).read_text()
+    assert [line for line in unity.splitlines() if line.startswith("#include")] == [
+        '#include "composite.cpp"', '#include "project.cpp"']
+
+
+def test_the_unity_source_is_rewritten_only_when_it_changes(tmp_path):
+    # A new file time would make ninja compile the library again at every load.
+    ext = extension.Extension("nimbus_test_unity", ("composite.cpp", "project.cpp"), "k", "f")
+    path = Path(ext._unity_source(str(tmp_path)))
+    old = path.stat().st_mtime_ns - 10**9
+    os.utime(path, ns=(old, old))
+    assert Path(ext._unity_source(str(tmp_path))) == path and path.stat().st_mtime_ns == old
+    path.write_text("// stale\n")
+    ext._unity_source(str(tmp_path))
+    assert '#include "project.cpp"' in path.read_text()
+    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]  # no temporary file left
 
 
 def test_build_failure_falls_back_with_one_warning(monkeypatch):
