@@ -713,26 +713,38 @@ def _score_cell(record: dict, root: Path, options: CellOptions) -> dict:
     score = score_run(final, data, results, ssim_protocol=options.ssim_protocol, lpips_net=lpips,
                       device=options.device, quantize=options.quantize)
     per_view = [{k: v[k] for k in ("name", "psnr", "ssim", "lpips")} for v in score["per_view"]]
+    manifest_sha256 = sha256_file(data_manifest(data))
     return {
-        **_input_fields(cell, data, results.get("eval_split", "test"), options, lpips),
+        **_input_fields(cell, data, manifest_sha256, results.get("eval_split", "test"), options, lpips),
         "psnr": score["mean"]["psnr"], "ssim": score["mean"]["ssim"], "lpips": score["mean"]["lpips"],
         "per_view": per_view, "ssim_protocol": options.ssim_protocol, "lpips_net": options.lpips_net,
         "protocol": score["protocol"], "eval_protocol": options.eval_protocol, "notes": score["notes"], "setup_command": score.get("setup_command"),
         "ground_truth": score["ground_truth"],
-        "input_sha256": sha256_file(data_manifest(data)),
+        "input_sha256": manifest_sha256,
         "output_sha256": {v["name"]: v["pred_sha256"] for v in score["per_view"]},
     }
 
 
-def _input_fields(cell: Cell, data: Path, split: str, options: CellOptions, lpips) -> dict:
+def _input_fields(cell: Cell, data: Path, manifest_sha256: str, split: str, options: CellOptions, lpips) -> dict:
     """:data:`INPUT_FIELDS` of a weather cell's record (:func:`score_input`); none for a clean-ceiling cell, which
-    has no degraded input, nor for data without ``clean/`` views to score it against."""
+    has no degraded input, nor for data without ``clean/`` views to score it against.
+
+    Every method of a setting has the same input: it is scored once per process (:func:`_input_score`)."""
     from benchmark.score import CLEAN_DIR
 
     if cell.is_ceiling or not (data / CLEAN_DIR).is_dir():
         return {}
-    score = score_input(data, split, ssim_protocol=options.ssim_protocol, lpips_net=lpips, device=options.device)
-    return {field: score["mean"][k] for k, field in INPUT_FIELDS.items()}
+    return dict(_input_score(str(data.resolve()), manifest_sha256, split, options.ssim_protocol, lpips,
+                             options.device))
+
+
+@functools.lru_cache(maxsize=256)
+def _input_score(data: str, manifest_sha256: str, split: str, ssim_protocol: str, lpips,
+                 device: str | None) -> tuple:
+    """:data:`INPUT_FIELDS` of the setting folder ``data`` as ``(field, value)`` pairs, computed once per process for
+    a given dataset manifest (its sha256, so a folder synthesised again is scored again) and scoring protocol."""
+    score = score_input(Path(data), split, ssim_protocol=ssim_protocol, lpips_net=lpips, device=device)
+    return tuple((field, score["mean"][k]) for k, field in INPUT_FIELDS.items())
 
 
 def _param_count(model, results: dict, config) -> tuple[int | None, str]:

@@ -23,7 +23,7 @@ from benchmark.cli import TOOL
 from benchmark.grid import DaskExecutor, InlineExecutor, LocalExecutor, build_cells, run_grid
 from benchmark.store import ResultsStore, load_results
 from nimbus.cli_util import run_cli
-from nimbus.data.images import read_image
+from nimbus.data.images import read_image, write_image
 from nimbus.errors import NimbusError, SkippedRecordWarning
 from nimbus.metrics import peak_signal_noise_ratio as psnr
 from nimbus.utils.fs import sha256_file
@@ -216,6 +216,34 @@ def test_the_input_score_takes_the_cells_lpips_network(finished):
     expected = _input_score(data_dir(root, cell.Cell.from_dict(rec)), [v["name"] for v in rec["per_view"]], "alex")
     assert scored["input_lpips"] == pytest.approx(expected["lpips"], rel=1e-5) and scored["input_lpips"] > 0
     assert scored["input_psnr"] == pytest.approx(rec["input_psnr"])  # the rest as before
+
+
+def test_a_settings_input_is_scored_once_per_process_and_again_when_its_data_changes(finished, tmp_path,
+                                                                                      monkeypatch):
+    """Every method of a setting has the same degraded input: scoring it again for each gave the same numbers."""
+    root, _ = finished
+    rec = next(r for r in ResultsStore(root).records() if r["weather"] == "H")
+    calls = []
+    real = cell.score_input
+    monkeypatch.setattr(cell, "score_input", lambda *a, **k: calls.append(a[0]) or real(*a, **k))
+    cell._input_score.cache_clear()
+    options = CellOptions(lpips_net=None)
+    first = cell.score_cell({**rec, "status": cell.TRAINED}, str(root), options)
+    again = cell.score_cell({**rec, "status": cell.TRAINED}, str(root), options)
+    assert len(calls) == 1 and first["input_psnr"] == again["input_psnr"] == pytest.approx(rec["input_psnr"])
+    # The same setting synthesised again (another manifest) is scored again, from its own images.
+    copy = copy_data(root, tmp_path)
+    shutil.copytree(root / "runs", copy / "runs")
+    data = data_dir(copy, cell.Cell.from_dict(rec))
+    names = [v["name"] for v in rec["per_view"]]
+    image = read_image(data / "images" / names[0])
+    image[:8] = 1.0 - image[:8]
+    write_image(data / "images" / names[0], image)
+    manifest = data / "manifest.json"
+    manifest.write_text(manifest.read_text() + "\n")
+    changed = cell.score_cell({**rec, "status": cell.TRAINED}, str(copy), options)
+    assert len(calls) == 2 and changed["input_psnr"] == pytest.approx(_input_score(data, names)["psnr"], rel=1e-6)
+    assert changed["input_psnr"] < first["input_psnr"]
 
 
 def test_a_reused_worker_gives_a_cell_the_figures_of_a_fresh_one(finished, tmp_path):
