@@ -153,7 +153,11 @@ def build_cells(scenes: Sequence["str | SceneSource"], weathers: Sequence[str], 
 
 # --- executors -----------------------------------------------------------------------------------
 class Executor(Protocol):
-    """Runs cells and yields their records as they finish (in any order)."""
+    """Runs cells and yields their records as they finish (in any order).
+
+    :func:`run_grid` also calls ``start(cells, options)`` before it prepares the cells' data and ``close()`` when the
+    run ends, where an executor has them (:class:`LocalExecutor`: its workers warm up meanwhile).
+    """
 
     def imap(self, cells: Sequence[Cell], root: str, options: CellOptions) -> Iterator[dict]: ...
 
@@ -194,6 +198,7 @@ class LocalExecutor:
     name = "local"
 
     def __init__(self, jobs: int | str = 1) -> None:
+        self._workers = None  # the CellWorkers of the current run
         if jobs == AUTO_JOBS:
             self.jobs: int | None = None
             return
@@ -211,16 +216,38 @@ class LocalExecutor:
         """Torch threads of each worker: the cores shared among the workers."""
         return max(1, usable_cpus() // self.workers(cells))
 
-    def imap(self, cells: Sequence[Cell], root: str, options: CellOptions) -> Iterator[dict]:
+    def _pool(self, cells: Sequence[Cell], options: CellOptions):
+        """The workers for ``cells`` (those :meth:`start` started, else new ones) and the options they run with."""
         from benchmark.workers import CellWorkers
         from nimbus.utils.memory import available_memory
 
-        if self.jobs is None and runs_on_cuda(options):
-            return LocalExecutor(1).imap(cells, root, options)
         if options.threads is None:
             options = dataclasses.replace(options, threads=self.threads(len(cells)))
-        memory = available_memory() if self.jobs is None else None
-        return CellWorkers(self.workers(len(cells)), memory=memory).imap(cells, root, options)
+        if self._workers is None:
+            memory = available_memory() if self.jobs is None else None
+            self._workers = CellWorkers(self.workers(len(cells)), memory=memory)
+        return self._workers, options
+
+    def start(self, cells: Sequence[Cell], options: CellOptions) -> None:
+        """Start the workers for ``cells`` now: they load what training needs (the first time, they build the
+        compiled kernels) while the caller prepares the cells' data; :meth:`imap` then uses them.  On CUDA nothing
+        starts early: gsplat's extension is built by one process before the workers (:mod:`benchmark.workers`)."""
+        if runs_on_cuda(options):
+            return
+        workers, options = self._pool(cells, options)
+        workers.start(len(cells), options)
+
+    def close(self) -> None:
+        """Stop the workers still running (a run that stopped before :meth:`imap`, or after it)."""
+        if self._workers is not None:
+            self._workers.close()
+            self._workers = None
+
+    def imap(self, cells: Sequence[Cell], root: str, options: CellOptions) -> Iterator[dict]:
+        if self.jobs is None and runs_on_cuda(options):
+            return LocalExecutor(1).imap(cells, root, options)
+        workers, options = self._pool(cells, options)
+        return workers.imap(cells, root, options)
 
 
 class DaskExecutor:
@@ -438,6 +465,9 @@ def run_grid(cells: Sequence[Cell], root: str | os.PathLike, executor: Executor 
                 f"({'; '.join(sorted(set(elsewhere.values())))}): {', '.join(elsewhere)}")
         ran = []
         if todo:
+            start = getattr(executor, "start", None)
+            if start is not None:  # the workers warm up (and build the kernels) while the data is prepared
+                start(todo, options)
             prepare_data(root, todo, progress=False, log=say)
             scene_fields = {c.data_name: _scene_fields(root, c.data_name) for c in todo}
             records = executor.imap(todo, str(root), options)
@@ -457,6 +487,9 @@ def run_grid(cells: Sequence[Cell], root: str | os.PathLike, executor: Executor 
                 if close is not None:
                     close()
     finally:
+        close = getattr(executor, "close", None)
+        if close is not None:  # workers started for data that failed to prepare, say
+            close()
         for lock in locks.values():
             lock.release()
         if bar is not None:

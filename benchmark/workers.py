@@ -13,7 +13,9 @@ Start-up
     A worker is spawned (not forked: forking a process that has started torch's thread pools
     can deadlock), sets its torch threads, and loads what every cell would otherwise load on
     first use (:func:`benchmark.cell.warm_up`) before its first cell, so that no cell's
-    training time includes it and every cell starts from the same resident baseline.
+    training time includes it and every cell starts from the same resident baseline.  The
+    first workers start before the parent prepares the data (:meth:`CellWorkers.start`), so that
+    their start-up, and in a fresh checkout the kernels' build, runs beside it.
 
 CUDA
     On CUDA every worker loads gsplat's extension, which gsplat builds on first use.  Several
@@ -92,10 +94,11 @@ def exit_with_parent(parent: int, poll_s: float = 1.0) -> threading.Thread:
     return thread
 
 
-def serve(conn: Connection, parent: int | None = None, index: int = 0) -> None:
+def serve(conn: Connection, parent: int | None = None, index: int = 0, options: CellOptions | None = None) -> None:
     """A worker's life: train each ``(cell, root, options)`` received, until ``None`` or the parent is gone.
 
-    Warms up before its first cell (and again should the options change); exits after one cell
+    Warms up at once with ``options`` when given (a worker started before its cells' data is ready), else before
+    its first cell, and again should the options change; exits after one cell
     where the peak memory cannot be reset between cells, and within a second of the parent
     process ``parent`` ending, even in the middle of a cell (:func:`exit_with_parent`).  Odd-numbered
     workers (``index``) load the compiled kernels in reverse order (:func:`~benchmark.cell.warm_up`).
@@ -103,6 +106,9 @@ def serve(conn: Connection, parent: int | None = None, index: int = 0) -> None:
     if parent is not None:
         exit_with_parent(parent)
     warmed = None
+    if options is not None:
+        warm_up(options, reverse=index % 2 == 1)
+        warmed = options
     while True:
         try:
             task = conn.recv()
@@ -130,9 +136,10 @@ def prebuild_extensions(ctx, options: CellOptions) -> None:
 class _Worker:
     """One spawned worker process, the pipe to it, and the cell it is running (None when idle)."""
 
-    def __init__(self, ctx, index: int = 0) -> None:
+    def __init__(self, ctx, index: int = 0, options: CellOptions | None = None) -> None:
         self.conn, child = ctx.Pipe()
-        self.process = ctx.Process(target=serve, args=(child, os.getpid(), index), name="nimbus-bench-worker")
+        self.process = ctx.Process(target=serve, args=(child, os.getpid(), index, options),
+                                   name="nimbus-bench-worker")
         self.process.start()
         child.close()
         self.index = index
@@ -208,6 +215,33 @@ class CellWorkers:
         self.memory = memory
         #: The largest peak memory of a cell so far (MB), None before any record.
         self.peak_mb: float | None = None
+        self._workers: list[_Worker] = []
+        self._ctx = None
+
+    def _context(self):
+        import multiprocessing
+
+        if self._ctx is None:
+            self._ctx = multiprocessing.get_context("spawn")
+        return self._ctx
+
+    def _spawn(self, options: CellOptions | None = None) -> None:
+        taken = {w.index for w in self._workers}
+        index = next(i for i in range(len(self._workers) + 1) if i not in taken)
+        self._workers.append(_Worker(self._context(), index, options))
+
+    def start(self, cells: int, options: CellOptions) -> None:
+        """Start the first workers for ``cells`` cells now, each loading at once what training needs (the first
+        time, building the kernels: :func:`~benchmark.cell.warm_up`), while the caller prepares the cells' data.
+        :meth:`imap` then hands them the cells; :meth:`close` stops them if it never comes."""
+        while len(self._workers) < min(self.allowed(), cells):
+            self._spawn(options)
+
+    def close(self) -> None:
+        """Stop every worker (each after its current cell)."""
+        workers, self._workers = self._workers, []
+        for w in workers:
+            w.stop()
 
     def allowed(self) -> int:
         """Workers that may run now."""
@@ -224,13 +258,10 @@ class CellWorkers:
             self.peak_mb = max(self.peak_mb or 0.0, float(peak))
 
     def imap(self, cells: Sequence[Cell], root: str, options: CellOptions) -> Iterator[dict]:
-        import multiprocessing
-
-        ctx = multiprocessing.get_context("spawn")
         todo = list(cells)[::-1]  # taken from the end: table order
-        if self.jobs > 1 and len(todo) > 1 and runs_on_cuda(options):
-            prebuild_extensions(ctx, options)
-        workers: list[_Worker] = []
+        if self.jobs > 1 and len(todo) > 1 and not self._workers and runs_on_cuda(options):
+            prebuild_extensions(self._context(), options)
+        workers = self._workers
         try:
             while True:
                 for w in [w for w in workers if not w.reusable]:
@@ -240,8 +271,7 @@ class CellWorkers:
                     w.stop()  # more workers than the memory holds at the cells' peak: one fewer
                     workers.remove(w)
                 while todo and len(workers) < self.allowed():
-                    taken = {w.index for w in workers}
-                    workers.append(_Worker(ctx, next(i for i in range(len(workers) + 1) if i not in taken)))
+                    self._spawn()
                 for w in workers:
                     if w.cell is None and todo and w.send(todo[-1], root, options):
                         todo.pop()
@@ -261,5 +291,4 @@ class CellWorkers:
                         # Scored here while the worker waits: no cell trains beside its own scoring.
                         yield score_cell(record, root, options)
         finally:
-            for w in workers:
-                w.stop()
+            self.close()

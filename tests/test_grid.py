@@ -246,6 +246,48 @@ def test_a_settings_input_is_scored_once_per_process_and_again_when_its_data_cha
     assert changed["input_psnr"] < first["input_psnr"]
 
 
+def test_the_workers_start_while_the_data_is_prepared_and_then_train_the_cells(finished, tmp_path, monkeypatch):
+    """Their start-up (a fresh checkout: the kernels' build) runs beside the data's preparation, not after it."""
+    import multiprocessing
+
+    from benchmark import workers
+
+    root, outcome = finished
+    spawned, alive_at_prep = [], []
+
+    class Counted(workers._Worker):
+        def __init__(self, *args, **kwargs):
+            spawned.append(args[1:] + tuple(kwargs.values()))
+            super().__init__(*args, **kwargs)
+
+    def prepare(*args, **kwargs):
+        alive_at_prep.extend(p.name for p in multiprocessing.active_children())
+        return real(*args, **kwargs)
+
+    real = grid.prepare_data
+    monkeypatch.setattr(workers, "_Worker", Counted)
+    monkeypatch.setattr(grid, "prepare_data", prepare)
+    again = run_grid(cells(), copy_data(root, tmp_path), LocalExecutor(jobs=1), OPTIONS, progress=False,
+                     log=lambda s: None).ran
+    assert alive_at_prep == ["nimbus-bench-worker"]
+    assert len(spawned) == 1 and spawned[0][1] is not None  # one worker, started with the options to warm up
+    assert [r["status"] for r in again] == ["ok", "ok"] and {r["cell_id"] for r in again} == {
+        r["cell_id"] for r in outcome.ran}
+    assert not [p for p in multiprocessing.active_children() if p.name == "nimbus-bench-worker"]
+
+
+def test_workers_started_for_data_that_fails_to_prepare_are_stopped(tmp_path, monkeypatch):
+    import multiprocessing
+
+    def broken(*args, **kwargs):
+        raise NimbusError("no data")
+
+    monkeypatch.setattr(grid, "prepare_data", broken)
+    with pytest.raises(NimbusError, match="no data"):
+        run_grid(cells(), tmp_path / "root", LocalExecutor(jobs=1), OPTIONS, progress=False, log=lambda s: None)
+    assert not [p for p in multiprocessing.active_children() if p.name == "nimbus-bench-worker"]
+
+
 def test_a_reused_worker_gives_a_cell_the_figures_of_a_fresh_one(finished, tmp_path):
     """Nothing leaks from one cell to the next in a worker: the same renders and scores as a first cell."""
     root, outcome = finished

@@ -108,7 +108,7 @@ def test_a_cuda_run_of_several_workers_builds_the_extension_once_first(monkeypat
     seen = []
     monkeypatch.setattr(workers, "prebuild_extensions", lambda ctx, options: seen.append("prebuild"))
 
-    def worker(ctx, index=0):
+    def worker(ctx, index=0, options=None):
         seen.append("worker")
         raise _Stop  # the order is all this test needs: no process starts
 
