@@ -370,7 +370,7 @@ def resumable_partial(partial: Path, cell: Cell, config, data: Path, device: str
 # --- training and scoring ------------------------------------------------------------------------
 def train_method(method_name: str, scene, config, out_dir: Path, *, seed: int, scene_path: str, progress: bool,
                  device: str | None = None,
-                 model_ready: Callable[[object], None] | None = None) -> tuple[dict, object]:
+                 model_ready: Callable[[object], None] | None = None, resume_hint: bool = True) -> tuple[dict, object]:
     """Train a registered method on a scene into the run folder ``out_dir``.
 
     The grid's and the stability report's one call into the Runner: every cell, sweep point and
@@ -396,6 +396,9 @@ def train_method(method_name: str, scene, config, out_dir: Path, *, seed: int, s
     model_ready : callable(model), optional
         Called with the model once it is built, before it trains: a caller that inspects
         the model after a failed training gets it this way.
+    resume_hint : bool
+        On an interrupt, say how to continue with ``nimbus-train --resume`` (False: the caller resumes the
+        folder itself, as the grid does).
 
     Returns
     -------
@@ -408,6 +411,7 @@ def train_method(method_name: str, scene, config, out_dir: Path, *, seed: int, s
 
     runner = Runner(method_name, scene, config, out_dir, seed=seed, scene_path=scene_path, progress=progress,
                     device=torch.device(device) if device else None)
+    runner.resume_hint = resume_hint
     if model_ready is not None:
         model_ready(runner)
     return runner.run(), runner
@@ -667,6 +671,7 @@ def _train_cell(cell: Cell, root: Path, options: CellOptions) -> dict:
     final, partial = run_dir(root, cell), partial_dir(root, cell)
     resumed = resumable_partial(partial, cell, config, data, options.device)
     if resumed is not None:
+        resumed.resume_hint = False  # the grid resumes its cells: nimbus-bench's own message says how
         resumed_from = resumed.iteration
         if final.exists():  # an earlier finished attempt's folder (--rerun): the resumed one replaces it
             shutil.rmtree(final)
@@ -676,7 +681,8 @@ def _train_cell(cell: Cell, root: Path, options: CellOptions) -> dict:
         final, partial = clear_run_dirs(root, cell)
         scene = load_scene(data)
         results, model = train_method(cell.method, scene, config, partial, seed=cell.seed,
-                                      scene_path=str(data.resolve()), progress=False, device=options.device)
+                                      scene_path=str(data.resolve()), progress=False, device=options.device,
+                                      resume_hint=False)
     num_params, source = _param_count(model, results, config)
     if not options.quantize:
         save_float_renders(model, partial, results.get("eval_split", "test"))

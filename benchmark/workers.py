@@ -105,6 +105,13 @@ def serve(conn: Connection, parent: int | None = None, index: int = 0, options: 
     """
     if parent is not None:
         exit_with_parent(parent)
+    try:
+        _serve(conn, index, options)
+    except KeyboardInterrupt:  # Ctrl-C reaches every process of the group: the parent says what happened
+        return
+
+
+def _serve(conn: Connection, index: int, options: CellOptions | None) -> None:
     warmed = None
     if options is not None:
         warm_up(options, reverse=index % 2 == 1)

@@ -428,6 +428,47 @@ def test_crash_mid_cell_resumes_without_corrupt_records(finished, tmp_path, monk
     assert run_dir(root, cells()[1]).is_dir() and not list((root / "runs").glob("*.partial"))
 
 
+def test_ctrl_c_gives_one_line_saying_how_to_continue(tmp_path, monkeypatch, capsys):
+    """Ctrl-C reaches the parent and every worker: one line from the parent, no worker traceback or nimbus-train
+    hint (the grid resumes its own cells), and the interrupt's exit status."""
+    from benchmark import workers
+    from benchmark.commands import run as run_command
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(run_command, "run_grid", interrupted)
+    rc = run_cli(TOOL.run, ["run", "--scenes", "garden", "--weathers", "H", "--methods", "3dgs", "--root",
+                            str(tmp_path / "r")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 130 and err[-1].startswith("error: interrupted; run the same command again to continue")
+    assert str(tmp_path / "r") in err[-1] and not any("Traceback" in line for line in err)
+
+    class Conn:  # a worker waiting for its next cell when Ctrl-C comes
+        def recv(self):
+            raise KeyboardInterrupt
+
+    assert workers.serve(Conn()) is None
+    assert capsys.readouterr().err == ""
+
+
+def test_a_cell_cut_short_by_ctrl_c_does_not_print_nimbus_trains_resume_hint(finished, tmp_path, monkeypatch,
+                                                                             capsys):
+    from nimbus.methods.gs3d import GaussianSplatting
+
+    original = GaussianSplatting.after_step
+
+    def stop(self, it):
+        if it == 3:
+            raise KeyboardInterrupt
+        return original(self, it)
+
+    monkeypatch.setattr(GaussianSplatting, "after_step", stop)
+    with pytest.raises(KeyboardInterrupt):
+        cell.train_cell(cells()[0], str(copy_data(finished[0], tmp_path)), OPTIONS)
+    assert "nimbus-train --resume" not in capsys.readouterr().err
+
+
 class _Killed(BaseException):
     """A process killed between two steps (SIGKILL, a machine going away): nothing is saved on the way out."""
 

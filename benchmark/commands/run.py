@@ -116,7 +116,13 @@ def run(args: argparse.Namespace) -> int:
           f"x {len(presets)} preset(s) x {len(seeds)} seed(s)"
           + (f" + {ceilings} clean-ceiling cell(s) ({CEILING_METHOD} on the clean views)" if ceilings else "")
           + f" -> {args.root}", file=sys.stderr)
-    outcome = run_grid(cells, args.root, executor, options, rerun=args.rerun, progress=not args.quiet)
+    try:
+        outcome = run_grid(cells, args.root, executor, options, rerun=args.rerun, progress=not args.quiet)
+    except KeyboardInterrupt:
+        print(f"error: interrupted; run the same command again to continue (the finished cells are kept in "
+              f"{args.root}; a cell cut short goes on from its checkpoint where that is exact, else starts again)",
+              file=sys.stderr)
+        return 130
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         df = load_results(args.root)

@@ -127,6 +127,9 @@ class Runner:
         self.cfg = config
         self.seed = int(seed)
         self.progress = progress
+        #: Whether an interrupt prints how to continue with ``nimbus-train --resume`` (False where the caller
+        #: resumes the folder itself: a benchmark cell).
+        self.resume_hint = True
         #: What training starts from (:func:`~nimbus.train.init_points.choose_init_points`): a points-less
         #: scene gets triangulated points (cached) or random ones; recorded in results.json and the log.
         init = choose_init_points(scene, config, self.seed,
@@ -283,8 +286,9 @@ class Runner:
             # optimiser step may make the resumed run differ from an uninterrupted one by a step).
             self.train_time = time_offset + time.perf_counter() - start
             self.save_checkpoint()
-            print(f"interrupted at iteration {self.iteration}; continue with: nimbus-train --resume {self.out}",
-                  file=sys.stderr)
+            if self.resume_hint:
+                print(f"interrupted at iteration {self.iteration}; continue with: nimbus-train --resume {self.out}",
+                      file=sys.stderr)
             raise
         finally:
             bar.close()
