@@ -184,16 +184,19 @@ class _Worker:
         return error_record(cell, f"worker process died ({how}) while running the cell; out of memory? "
                                   "try fewer --jobs", self.started_at)
 
-    def stop(self) -> None:
-        """Ask it to exit after its current cell, and wait until it has."""
+    def stop(self, timeout: float | None = None) -> None:
+        """Ask it to exit after its current cell, and wait until it has (at most ``timeout`` seconds: a worker still
+        warming up, say building the kernels, then exits once it is done, or with this process)."""
         try:
             self.conn.send(None)
         except OSError:  # it has exited already
             pass
-        self.process.join()
+        self.process.join(timeout)
         self.conn.close()
 
 
+#: Seconds :meth:`CellWorkers.close` waits for an idle worker (one that has not finished warming up may take longer).
+IDLE_STOP_S = 5.0
 #: With a memory budget (``--jobs auto``), cells run at once before any has said how much memory it takes.
 FIRST_WAVE = 2
 #: The share of the budget that the workers' peaks may fill (the parent scores beside them, with LPIPS).
@@ -245,10 +248,11 @@ class CellWorkers:
             self._spawn(options)
 
     def close(self) -> None:
-        """Stop every worker (each after its current cell)."""
+        """Stop every worker: one running a cell after that cell; an idle one is waited for at most
+        :data:`IDLE_STOP_S` (a run whose data failed to prepare reports it without waiting for the kernels' build)."""
         workers, self._workers = self._workers, []
         for w in workers:
-            w.stop()
+            w.stop(None if w.cell is not None else IDLE_STOP_S)
 
     def allowed(self) -> int:
         """Workers that may run now."""
