@@ -217,13 +217,14 @@ class LocalExecutor:
         return max(1, usable_cpus() // self.workers(cells))
 
     def _pool(self, cells: Sequence[Cell], options: CellOptions):
-        """The workers for ``cells`` (those :meth:`start` started, else new ones) and the options they run with."""
+        """The workers for ``cells`` (those :meth:`start` started, else new ones sized for ``cells``) and the options
+        they run with."""
         from benchmark.workers import CellWorkers
         from nimbus.utils.memory import available_memory
 
         if options.threads is None:
             options = dataclasses.replace(options, threads=self.threads(len(cells)))
-        if self._workers is None:
+        if self._workers is None or not self._workers.started:
             memory = available_memory() if self.jobs is None else None
             self._workers = CellWorkers(self.workers(len(cells)), memory=memory)
         return self._workers, options

@@ -247,6 +247,11 @@ class CellWorkers:
         while len(self._workers) < min(self.allowed(), cells):
             self._spawn(options)
 
+    @property
+    def started(self) -> bool:
+        """Whether workers are running (started by :meth:`start`, or an :meth:`imap` in progress)."""
+        return bool(self._workers)
+
     def close(self) -> None:
         """Stop every worker: one running a cell after that cell; an idle one is waited for at most
         :data:`IDLE_STOP_S` (a run whose data failed to prepare reports it without waiting for the kernels' build)."""

@@ -276,6 +276,20 @@ def test_the_workers_start_while_the_data_is_prepared_and_then_train_the_cells(f
     assert not [p for p in multiprocessing.active_children() if p.name == "nimbus-bench-worker"]
 
 
+def test_an_executor_used_again_sizes_its_workers_for_the_new_cells(monkeypatch):
+    """Workers are sized for the cells they are started for: a second imap does not inherit the first one's count."""
+    from benchmark import workers
+
+    sizes = []
+    monkeypatch.setattr(workers.CellWorkers, "imap", lambda self, cells, root, options: iter(sizes.append(self.jobs)
+                                                                                          or ()))
+    monkeypatch.setattr(grid, "usable_cpus", lambda: 8)
+    executor = LocalExecutor("auto")
+    for n in (1, 5):
+        list(executor.imap(cells()[:1] * n, "root", OPTIONS))
+    assert sizes == [1, 5]
+
+
 def test_workers_started_for_data_that_fails_to_prepare_are_stopped(tmp_path, monkeypatch):
     import multiprocessing
 
