@@ -488,9 +488,9 @@ def run_grid(cells: Sequence[Cell], root: str | os.PathLike, executor: Executor 
                 if close is not None:
                     close()
     finally:
-        close = getattr(executor, "close", None)
-        if close is not None:  # workers started for data that failed to prepare, say
-            close()
+        stop_executor = getattr(executor, "close", None)
+        if stop_executor is not None:  # workers started for data that failed to prepare, say
+            stop_executor()
         for lock in locks.values():
             lock.release()
         if bar is not None:

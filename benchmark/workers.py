@@ -113,9 +113,15 @@ def serve(conn: Connection, parent: int | None = None, index: int = 0, options: 
 
 def _serve(conn: Connection, index: int, options: CellOptions | None) -> None:
     warmed = None
+
+    def warm(wanted: CellOptions) -> None:
+        nonlocal warmed
+        if wanted != warmed:
+            warm_up(wanted, reverse=index % 2 == 1)
+            warmed = wanted
+
     if options is not None:
-        warm_up(options, reverse=index % 2 == 1)
-        warmed = options
+        warm(options)
     while True:
         try:
             task = conn.recv()
@@ -124,9 +130,7 @@ def _serve(conn: Connection, index: int, options: CellOptions | None) -> None:
         if task is None:
             return
         cell, root, options = task
-        if warmed != options:
-            warm_up(options, reverse=index % 2 == 1)
-            warmed = options
+        warm(options)
         reusable = reset_peak_memory()
         conn.send((train_cell(cell, root, options), reusable))
         if not reusable:
