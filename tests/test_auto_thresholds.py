@@ -269,3 +269,34 @@ def test_a_store_of_the_benchmarks_own_scenes_or_without_pairs_is_refused(seed, 
     assert run_cli(main, ["--store", str(root)]) == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err
+
+
+def test_particle_share_is_the_cut_where_the_step_gains_most():
+    from tools.restore_thresholds import best_share, share_gains
+
+    rows = [{"white_share": s, "gain": g} for s, g in ((0.5, -1.0), (0.8, -2.0), (0.97, 1.0), (1.0, 0.5))]
+    gains = share_gains(rows, cuts=(0.7, 0.9, 0.98))
+    # A view below the cut gains nothing; the mean is over every view.
+    assert gains == [(0.7, pytest.approx(-0.125)), (0.9, pytest.approx(0.375)), (0.98, pytest.approx(0.125)),
+                     (float("inf"), 0.0)]
+    assert best_share(gains) == 0.9
+    # Where the step never gains, the highest cut wins: never run it.
+    assert best_share(share_gains(rows[:2], cuts=(0.4, 0.9))) == float("inf")
+
+
+def test_particle_gain_rows_score_the_step_against_the_clean_view(tmp_path):
+    import cv2
+
+    from tools.restore_thresholds import particle_gain_rows
+    from test_restore_3dgs import _smooth_texture, _streaks
+
+    clean = _smooth_texture()
+    setting = tmp_path / "scene-tiny" / "R"
+    for folder, img in (("clean", clean), ("images", _streaks(clean, n=120))):
+        (setting / folder).mkdir(parents=True)
+        cv2.imwrite(str(setting / folder / "000.png"), np.rint(img[..., ::-1] * 255).astype(np.uint8))
+    (setting / "train_list.txt").write_text("000.png\n")
+    (setting / "manifest.json").write_text("{}")
+    (row,) = particle_gain_rows([tmp_path / "scene-tiny"])
+    assert row["setting"] == "R" and row["white_share"] > 1.0
+    assert row["gain"] > 3.0  # the streaks are removed: far closer to the clean view
