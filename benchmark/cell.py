@@ -103,7 +103,7 @@ class Cell:
     seed : int
         Training seed (the data's seeds are fixed).
     size : str
-        Built-in scene size (``tiny``, ``small``, ``standard``); ``images`` / ``images_<N>`` (the image folder read)
+        Built-in scene size (``tiny``, ``compact``, ``small``, ``standard``); ``images`` / ``images_<N>`` (the image folder read)
         for a scene read from a folder.
     overrides : tuple of (key, value)
         ``--set`` config overrides, sorted.

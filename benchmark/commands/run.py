@@ -46,7 +46,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="comma list of registered methods; default: nimbus, 3dgs and restore-3dgs (those registered)")
     p.add_argument("--preset", default=DEFAULT_PRESET, help="trainer preset(s), comma list: tiny, fast, paper")
     p.add_argument("--seeds", default="0", help="comma list of training seeds")
-    p.add_argument("--size", default=DEFAULT_SIZE, help="built-in scene size: tiny, small, standard (built-in scenes only)")
+    p.add_argument("--size", default=DEFAULT_SIZE, help="built-in scene size: tiny, compact, small, standard (built-in scenes only)")
     p.add_argument("--no-ceiling", action="store_true",
                    help="do not train the clean ceiling (3dgs on each scene's clean training views, one cell per scene "
                         "x preset x seed) that the tables give every method's gap to")

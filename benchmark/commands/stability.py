@@ -26,7 +26,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="training iterations of every run (the preset's schedule is rescaled)")
     p.add_argument("--preset", default=DEFAULT_PRESET, help="trainer preset: tiny, fast, paper")
     p.add_argument("--scene", default=DEFAULT_SCENE, help="built-in scene the inputs are made from")
-    p.add_argument("--size", default=DEFAULT_SIZE, help="built-in scene size: tiny, small, standard")
+    p.add_argument("--size", default=DEFAULT_SIZE, help="built-in scene size: tiny, compact, small, standard")
     p.add_argument("--ssim", choices=tuple(SSIM_PROTOCOLS), default="3dgs", help="SSIM protocol (3dgs: paper)")
     p.add_argument("--lpips", choices=LPIPS_NETS + ("none",), default="vgg", help="LPIPS network (vgg: paper)")
     p.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")

@@ -28,7 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--weather", default=DEFAULT_WEATHER, help="weather setting of the base cell (H, R, S, H+R, ...)")
     p.add_argument("--method", default=DEFAULT_METHOD, help="method of the base cell")
     p.add_argument("--preset", default=DEFAULT_PRESET, help="trainer preset of the base cell: tiny, fast, paper")
-    p.add_argument("--size", default=DEFAULT_SIZE, help="built-in scene size: tiny, small, standard")
+    p.add_argument("--size", default=DEFAULT_SIZE, help="built-in scene size: tiny, compact, small, standard")
     p.add_argument("--seed", type=int, default=0, help="training seed")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="base config override (repeatable)")
     p.add_argument("--root", default=DEFAULT_ROOT,

@@ -100,7 +100,7 @@ def format_table(rows: list[dict]) -> str:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenes", default="garden,street", help=f"comma-separated, of {', '.join(list_scenes())}")
-    parser.add_argument("--sizes", default="tiny", help="comma-separated: tiny, small, standard")
+    parser.add_argument("--sizes", default="tiny", help="comma-separated: tiny, compact, small, standard")
     parser.add_argument("--iterations", default="300,600", help="recon fit lengths to compare, comma-separated")
     parser.add_argument("--sources", default=",".join(SOURCES), help="comma-separated, of scene, sparse, recon")
     parser.add_argument("--threads", type=int, default=2, help="torch threads")

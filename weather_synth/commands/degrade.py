@@ -154,7 +154,7 @@ def load_input_scene(spec: str, downscale: int = 1):
         name, size = parts[1], parts[2] if len(parts) > 2 else "tiny"
         if downscale != 1:
             raise NimbusError(f"--downscale {downscale} applies to scene folders with images_{downscale}/; a built-in "
-                              f"scene's resolution is its SIZE: use builtin:{name}:tiny|small|standard "
+                              f"scene's resolution is its SIZE: use builtin:{name}:tiny|compact|small|standard "
                               "without --downscale")
         return render_builtin(name, size)
     from nimbus.data.io import load_scene
