@@ -1,7 +1,8 @@
 """The committed table folders that hold their records regenerate from them byte for byte.
 
-``tables/small_fast_6methods`` (issue 17's grid), ``tables/cuda_check_small_fast`` (its CUDA check) and
-``tables/default_tiny`` (the README main job) keep their ``results.jsonl``, and so does ``tables/validation_tiny``, whose
+``tables/small_fast_6methods`` (issue 17's grid), ``tables/cuda_check_small_fast`` (its CUDA check),
+``tables/default_tiny`` (the default grid) and ``tables/main_compact`` (the README main job) keep their
+``results.jsonl``, and so does ``tables/validation_tiny``, whose
 README's summaries are checked against its tool; the commands their READMEs give must write exactly the committed files, so a change
 to a table layout that moves a committed figure or sentence shows here, not in a reader's diff.
 """
@@ -68,8 +69,13 @@ def _tables_regenerate(folder: str, tmp_path, capsys, *options: str) -> None:
 
 
 def test_default_tiny_tables_regenerate(tmp_path, capsys):
-    """The README main job's tables (three scenes, seven settings, three seeds on the hazy ones, the ceiling)."""
+    """The default grid's tables (three scenes, seven settings, three seeds, the ceiling)."""
     _tables_regenerate("default_tiny", tmp_path, capsys)
+
+
+def test_main_compact_tables_regenerate(tmp_path, capsys):
+    """The README main job's tables (street at compact size, H, R and S, the ceiling)."""
+    _tables_regenerate("main_compact", tmp_path, capsys)
 
 
 def test_street_small_h_tables_regenerate(tmp_path, capsys):
