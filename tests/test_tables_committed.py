@@ -91,6 +91,7 @@ def test_small_hazy_tables_regenerate(tmp_path, capsys):
 @pytest.mark.parametrize("folder, methods", [
     ("small_grid_seed0", "nimbus,restore-3dgs,3dgs,robust-3dgs,medium-3dgs"),  # every method, seed 0, the newest records
     ("small_haze_free", "nimbus,3dgs,robust-3dgs"),  # R, S and R+S on the three small scenes, at one commit
+    ("small_hazy_particle_cut", "nimbus,restore-3dgs"),  # restore-3dgs again with its particle cut of 2026-12-01
     ("small_street_S_seeds", "nimbus,3dgs,robust-3dgs"),  # the smallest haze-free margin, three training seeds
     ("small_paper_H", "nimbus-paper,nimbus-paper[lambda_dehaze=1],3dgs"),  # nimbus-paper at small size, under H
     ("small_paper_R", "nimbus-paper,nimbus-paper[residual_tophat=0.03],3dgs"),  # and under R
