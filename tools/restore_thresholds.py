@@ -8,7 +8,7 @@ here), all seven settings, the ``onerestore`` protocol; then prints, over the *t
 the range of each ``auto`` statistic for views with and without the degradation it detects,
 and how many views the current thresholds get wrong.
 
-Last, what the particle step is worth: for every training view (the clean ones included), its PSNR
+Last, what the particle step is worth: for every degraded training view, its PSNR
 against the clean view restored as ``auto`` would with the particle remover first, minus without it
 (``dcp`` or nothing, as the haze test says), and for each cut of the white share the mean of that gain
 over all views when the step runs on the views at or above the cut.  ``PARTICLE_SHARE`` is the cut
