@@ -109,8 +109,9 @@ def particle_gain_rows(data_dirs: list[Path]) -> list[dict]:
     from nimbus.metrics.image import peak_signal_noise_ratio
     from nimbus.restore import Restorer, image_evidence
 
-    restorers = {(haze, parts): Restorer("+".join(["particles"] * parts + ["dcp"] * haze) or "none")
-                 for haze in (False, True) for parts in (False, True)}
+    # (hazy, with the particle step) -> what auto runs
+    restorers = {(False, False): Restorer("none"), (False, True): Restorer("particles"),
+                 (True, False): Restorer("dcp"), (True, True): Restorer("dcp+particles")}
     rows = []
     for data in data_dirs:
         for setting in sorted(p for p in data.iterdir() if (p / "manifest.json").is_file()):
