@@ -159,9 +159,10 @@ struct Inputs {
 };
 
 // Scratch buffers kept per calling thread between calls, one per Tag: a fresh buffer of
-// megabytes is a fresh mapping, and its page faults cost 5 to 10 % of a compositing call at
-// 240 x 180 (the backward's slots are about 11 MB there, the boxes 8 MB).  Grown when a call
-// needs more, never shrunk; contents are unspecified.
+// megabytes is a fresh mapping whose pages fault in again.  At 240 x 180 with 198k Gaussians
+// (slots about 11 MB, boxes 8 MB) keeping them made a backward about 16 % faster
+// (docs/performance.md, round 10).  Grown when a call needs more, never shrunk; contents are
+// unspecified.
 template <typename T, int Tag>
 T* scratch(size_t n) {
   thread_local std::unique_ptr<T[]> buffer;
