@@ -354,6 +354,21 @@ def test_thread_count_does_not_change_results():
     assert torch.equal(abs1, abs2) and abs1.abs().sum() > 0
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_buffers_kept_between_calls_do_not_change_results(dtype):
+    # The kernel keeps its boxes and gradient slots between calls; a larger call in between leaves
+    # other content (and more of it) in them, which a later call must not read.
+    small = inputs(make_scene(300, 40, 32, seed=11, dtype=dtype), 40, 32, 8)
+    large = inputs(make_scene(1500, 72, 56, seed=12, dtype=dtype), 72, 56, 8)
+    weights = output_weights(40, 32)
+    o1, g1, abs1 = kernel_grads(small, weights)
+    kernel_grads(large, output_weights(72, 56))
+    o2, g2, abs2 = kernel_grads(small, weights)
+    assert all(torch.equal(x, y) for x, y in zip(o1, o2))
+    assert all(torch.equal(g1[k], g2[k]) for k in GRAD_NAMES)
+    assert torch.equal(abs1, abs2) and abs1.abs().sum() > 0
+
+
 @pytest.mark.parametrize("isa", raster.CPU_ISAS)
 def test_each_isa_clone_matches_the_reference_and_the_generic_clone_bit_for_bit(isa):
     # The clones are forced one by one (NIMBUS_CPU_ISA does the same per process), so every path is
