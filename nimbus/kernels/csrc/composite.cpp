@@ -158,13 +158,13 @@ struct Inputs {
   const Box* boxes;  // [M]
 };
 
-// Scratch buffers kept per calling thread between calls, one per Tag: a fresh buffer of
+// Buffers kept per calling thread between calls, one per Tag: a fresh buffer of
 // megabytes is usually a fresh mapping whose pages fault in again.  At 240 x 180 with 198k
 // Gaussians (slots about 11 MB, boxes 8 MB) keeping them, with the backward's sums written
 // straight into its outputs, made a backward about 16 % faster (docs/performance.md, round
 // 10).  Grown when a call needs more, never shrunk; contents are unspecified.
 template <typename T, int Tag>
-T* scratch(size_t n) {
+T* kept_buffer(size_t n) {
   thread_local std::unique_ptr<T[]> buffer;
   thread_local size_t capacity = 0;
   if (n > capacity) {
@@ -176,7 +176,7 @@ T* scratch(size_t n) {
   }
   return buffer.get();
 }
-enum ScratchTag : int { kBoxesTag, kSlotsTag };
+enum KeptBufferTag : int { kBoxesTag, kSlotsTag };
 
 // Footprint boxes of all Gaussians (computed in double).
 template <typename S>
@@ -775,7 +775,7 @@ Inputs<scalar_t> make_inputs(const at::Tensor& means2d, const at::Tensor& conics
   in.blocks_x = (tile_size + kLanes - 1) / kLanes;
   const int64_t M = means2d.size(0);
   // Every box is written below, so the buffer is not cleared first.
-  Box* boxes = scratch<Box, kBoxesTag>(static_cast<size_t>(M));
+  Box* boxes = kept_buffer<Box, kBoxesTag>(static_cast<size_t>(M));
   footprints(in.means, in.conics, in.opac, M, width, height, boxes);
   in.boxes = boxes;
   return in;
@@ -853,7 +853,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     const int64_t tiles = in.tiles_x * in.tiles_y;
     // Every slot read back below is written by its tile (up to the tile's largest
     // contributor count), so the buffer is left uninitialised.
-    scalar_t* slots = scratch<scalar_t, kSlotsTag>(static_cast<size_t>(isect_ids.size(0)) * kSlots);
+    scalar_t* slots = kept_buffer<scalar_t, kSlotsTag>(static_cast<size_t>(isect_ids.size(0)) * kSlots);
     std::vector<int32_t> tile_count(tiles, 0);
     const BackwardIn<scalar_t> bin{t_final.data_ptr<scalar_t>(), grad_rgb.data_ptr<scalar_t>(),
                                    grad_depth.data_ptr<scalar_t>(), grad_alpha.data_ptr<scalar_t>(),
