@@ -83,3 +83,39 @@ def test_a_method_can_be_timed_with_overrides():
         training.time_method("nimbus:lazy", scene, "tiny", None, 0, 1, steps=2)
     with pytest.raises(NimbusError, match="ggs_clip"):  # a value with a comma stays one value (then checked)
         training.time_method("nimbus:ggs_clip=2,3,refresh_mode=all", scene, "tiny", None, 0, 1, steps=2)
+
+
+def test_runs_taking_turns_train_as_they_would_alone():
+    """--interleave: runs that take turns, switching the thread count between them, end with the same model as
+    each run trained alone, and every step of each is timed once."""
+    scene = load_scene_arg("builtin:garden:tiny")
+    runs = (("3dgs", 2, None), ("nimbus-full", 1, 7))  # name, threads, steps (of a 9-step schedule)
+    alone = []
+    for name, threads, steps in runs:
+        with training.TimedRun(name, scene, "tiny", 9, threads, steps) as run:
+            run.advance(100)
+            alone.append({k: v.clone() for k, v in run.method.params.tensors.items()})
+    (name_a, threads_a, steps_a), (name_b, threads_b, steps_b) = runs
+    with training.TimedRun(name_a, scene, "tiny", 9, threads_a, steps_a) as a, \
+            training.TimedRun(name_b, scene, "tiny", 9, threads_b, steps_b) as b:
+        while not (a.finished and b.finished):
+            a.advance(4)
+            b.advance(3)
+        assert (a.done, len(a.probe.steps), b.done, len(b.probe.steps)) == (9, 9, 7, 7)
+        assert a.result(warmup=2)["steps"] == 7 and b.result(warmup=2)["iterations"] == 9
+        for run, params in zip((a, b), alone):
+            for key, value in run.method.params.tensors.items():
+                assert torch.equal(value, params[key]), key
+
+
+def test_interleaved_tool_prints_every_thread_count(capsys):
+    """The command, interleaved: a table per thread count and the ratios between them."""
+    argv = ["--sizes", "tiny", "--methods", "3dgs", "3dgs:sh_degree=0", "--preset", "tiny", "--steps", "3",
+            "--warmup", "1", "--threads", "1,2", "--interleave", "2"]
+    assert training.main(argv) == 0
+    out = capsys.readouterr().out
+    assert "interleaved 2 steps at a time" in out
+    assert "1 thread(s)" in out and "2 thread(s)" in out and "2 steps timed" in out
+    assert "3dgs:sh_degree=0 / 3dgs" in out and "3dgs: 1 thr / 2 thr" in out
+    with pytest.raises(SystemExit):
+        training.main(argv[:-1] + ["-1"])

@@ -5,6 +5,7 @@ Usage::
     python -m tools.speed.training [--scene builtin:garden] [--sizes tiny small]
                                    [--methods 3dgs nimbus-full nimbus] [--preset tiny]
                                    [--iterations N] [--warmup 10] [--threads 1,2]
+                                   [--interleave 25]
 
 For each size (``builtin:NAME:SIZE``; a scene folder is timed once, at its own size), each
 method and each thread count, the method is built as ``nimbus-train`` builds it (its
@@ -45,6 +46,12 @@ whole.  ``whole`` is the median (and mean) wall milliseconds of ``train_iteratio
 rows).  The summary gives whole / raster, NimbusGS / 3DGS (medians of the same run) and
 the 1 / 2 thread ratio.  On a machine shared with other jobs every figure includes
 waiting for a core: the load average is printed, compare ratios from one run only.
+
+By default (``--interleave 25``) every method at every thread count is built first and they
+are trained at once, taking turns 25 steps at a time, so that a machine that drifts while the
+tool runs (a virtual machine's neighbours, a laptop's clock) moves them all alike and the
+ratios hold; memory is then the sum of the runs'.  ``--interleave 0`` trains them one after
+another, as the tool did before 2026-12-01.
 
 ``nimbus`` on a clean built-in scene usually turns its components off (that is what it is
 for); ``nimbus-full`` times every component.  A ``nimbus-synth degrade`` setting folder
@@ -228,28 +235,92 @@ def method_config(method_name: str, preset_name: str, iterations: int | None = N
     return method_name, config
 
 
+class TimedRun:
+    """One method trained step by step under its own :class:`Probe`, so that several runs can take turns.
+
+    ``name`` may carry ``--set`` overrides after a colon, ``nimbus:refresh_mode=all,airlight_stride=2``, so two
+    variants of one method are timed side by side in one run.  Close it (or use it as a context manager) to
+    delete its run folder.
+    """
+
+    def __init__(self, name: str, scene, preset_name: str, iterations: int | None, threads: int,
+                 steps: int | None = None) -> None:
+        from nimbus.train.runner import Runner
+
+        self.threads = threads
+        torch.set_num_threads(threads)
+        method_name, self.config = method_config(name, preset_name, iterations)
+        self._folder = tempfile.TemporaryDirectory(prefix="bench_training_")
+        try:
+            self.method = Runner(method_name, scene, self.config, self._folder.name, seed=0, progress=False,
+                                 checkpoints=False).method
+        except BaseException:
+            self._folder.cleanup()
+            raise
+        self.probe = Probe(self.method.device)
+        self.last = min(self.config.iterations, steps or self.config.iterations)
+        self.done = 0
+
+    @property
+    def finished(self) -> bool:
+        return self.done >= self.last or len(self.method.params) == 0
+
+    def advance(self, count: int) -> None:
+        """Train the next ``count`` steps (fewer at the end), timed, with this run's thread count."""
+        torch.set_num_threads(self.threads)
+        method, probe = self.method, self.probe
+        with instrumented(method, probe):
+            for _ in range(count):
+                if self.finished:
+                    break
+                self.done += 1
+                step = self.done
+                probe.step(lambda: method.train_iteration(step))
+
+    def result(self, warmup: int) -> dict:
+        """Per-part figures of the steps after the first ``warmup`` (see :func:`summarise`)."""
+        method = self.method
+        cam = method.train_views[0].camera
+        return dict(summarise(self.probe.steps[warmup:]), gaussians=len(method.params),
+                    size=f"{cam.width}x{cam.height}", components=",".join(getattr(method, "components", [])) or "-",
+                    iterations=self.config.iterations)
+
+    def close(self) -> None:
+        self._folder.cleanup()
+
+    def __enter__(self) -> "TimedRun":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
 def time_method(method_name: str, scene, preset_name: str, iterations: int | None, warmup: int,
                 threads: int, steps: int | None = None) -> dict:
-    """Train ``method_name`` on ``scene`` and return its per-part figures (see :func:`summarise`).
+    """Train ``method_name`` on ``scene`` and return its per-part figures (see :func:`summarise`)."""
+    with TimedRun(method_name, scene, preset_name, iterations, threads, steps) as run:
+        run.advance(run.last)
+        return run.result(warmup)
 
-    ``method_name`` may carry ``--set`` overrides after a colon, ``nimbus:refresh_mode=all,airlight_stride=2``, so
-    two variants of one method are timed side by side in one run.
+
+def time_interleaved(names: list[str], threads: list[int], scene, preset_name: str, iterations: int | None,
+                     warmup: int, steps: int | None = None, chunk: int = 25) -> dict[int, dict[str, dict]]:
+    """Every method at every thread count, trained at once, taking turns ``chunk`` steps at a time.
+
+    A machine that speeds up or slows down while the tool runs (a shared or virtual one, or a laptop's clock)
+    then moves every run alike, so the ratios between them hold; run one after another, a drift of the machine
+    between them would read as a difference of the methods.  Returns ``{threads: {name: figures}}``.
     """
-    from nimbus.train.runner import Runner
-
-    torch.set_num_threads(threads)
-    method_name, config = method_config(method_name, preset_name, iterations)
-    with tempfile.TemporaryDirectory(prefix="bench_training_") as out:
-        method = Runner(method_name, scene, config, out, seed=0, progress=False, checkpoints=False).method
-        probe = Probe(method.device)
-        with instrumented(method, probe):
-            for step in range(1, min(config.iterations, steps or config.iterations) + 1):
-                if len(method.params) == 0:
-                    break
-                probe.step(lambda: method.train_iteration(step))
-    cam = method.train_views[0].camera
-    return dict(summarise(probe.steps[warmup:]), gaussians=len(method.params), size=f"{cam.width}x{cam.height}",
-                components=",".join(getattr(method, "components", [])) or "-", iterations=config.iterations)
+    with ExitStack() as stack:
+        runs = {(th, name): stack.enter_context(TimedRun(name, scene, preset_name, iterations, th, steps))
+                for th in threads for name in names}
+        while not all(run.finished for run in runs.values()):
+            for run in runs.values():
+                run.advance(chunk)
+        out: dict[int, dict[str, dict]] = {th: {} for th in threads}
+        for (th, name), run in runs.items():
+            out[th][name] = run.result(warmup)
+        return out
 
 
 def summarise(steps: list[dict[str, float]]) -> dict:
@@ -336,22 +407,34 @@ def main(argv=None) -> int:
                         help="stop after the first N steps of the schedule (default: all of it)")
     parser.add_argument("--warmup", type=int, default=10, help="untimed first steps")
     parser.add_argument("--threads", default=None, help="comma-separated torch thread counts, e.g. 1,2")
+    parser.add_argument("--interleave", type=int, default=25, metavar="N",
+                        help="train every method at every thread count at once, N steps each in turn, so that a "
+                             "drift of the machine moves them alike (default 25); 0: one after another")
     args = parser.parse_args(argv)
+    if args.interleave < 0:
+        parser.error("--interleave must be 0 or more")
 
     from nimbus.train.run_folder import BUILTIN_PREFIX, load_scene_arg
 
     threads = [int(t) for t in args.threads.split(",")] if args.threads else [torch.get_num_threads()]
     specs = ([f"{args.scene}:{s}" for s in args.sizes] if args.scene.startswith(BUILTIN_PREFIX)
              and args.scene.count(":") == 1 else [args.scene])
-    print(f"training iteration, preset {args.preset}, medians after {args.warmup} warm-up steps; "
+    order = f"interleaved {args.interleave} steps at a time" if args.interleave else "one run after another"
+    print(f"training iteration, preset {args.preset}, medians after {args.warmup} warm-up steps, {order}; "
           f"{openmp_wait()}; load average {load_average()}\n", flush=True)
     results: dict[tuple[str, int], dict] = {}
     for spec in specs:
         scene = load_scene_arg(spec)
+        if args.interleave:
+            timed = time_interleaved(args.methods, threads, scene, args.preset, args.iterations, args.warmup,
+                                     args.steps, args.interleave)
         for th in threads:
-            runs = results[spec, th] = {}
-            for name in args.methods:
-                runs[name] = time_method(name, scene, args.preset, args.iterations, args.warmup, th, args.steps)
+            if args.interleave:
+                runs = results[spec, th] = timed[th]
+            else:
+                runs = results[spec, th] = {}
+                for name in args.methods:
+                    runs[name] = time_method(name, scene, args.preset, args.iterations, args.warmup, th, args.steps)
             first = next(iter(runs.values()))
             print(markdown(f"{spec} ({first['size']}, {len(scene.train_views)} training views, "
                            f"{first['iterations']}-step schedule, {first['steps']} steps timed), {th} thread(s), "
