@@ -49,9 +49,10 @@ waiting for a core: the load average is printed, compare ratios from one run onl
 
 By default (``--interleave 25``) every method at every thread count is built first and they
 are trained at once, taking turns 25 steps at a time, so that a machine that drifts while the
-tool runs (a virtual machine's neighbours, a laptop's clock) moves them all alike and the
-ratios hold; memory is then the sum of the runs'.  ``--interleave 0`` trains them one after
-another, as the tool did before 2026-12-01.
+tool runs (a virtual machine's neighbours, a laptop's clock) moves them all alike; memory is
+then the sum of the runs'.  A machine whose speed changes within 25 steps still moves the
+figures (docs/performance.md, round 11).  ``--interleave 0`` trains them one after another,
+as the tool did before 2026-12-01.
 
 ``nimbus`` on a clean built-in scene usually turns its components off (that is what it is
 for); ``nimbus-full`` times every component.  A ``nimbus-synth degrade`` setting folder
@@ -308,8 +309,8 @@ def time_interleaved(names: list[str], threads: list[int], scene, preset_name: s
     """Every method at every thread count, trained at once, taking turns ``chunk`` steps at a time.
 
     A machine that speeds up or slows down while the tool runs (a shared or virtual one, or a laptop's clock)
-    then moves every run alike, so the ratios between them hold; run one after another, a drift of the machine
-    between them would read as a difference of the methods.  Returns ``{threads: {name: figures}}``.
+    then moves every run alike; run one after another, a drift of the machine between them reads as a difference
+    of the methods or thread counts.  Returns ``{threads: {name: figures}}``.
     """
     with ExitStack() as stack:
         runs = {(th, name): stack.enter_context(TimedRun(name, scene, preset_name, iterations, th, steps))
